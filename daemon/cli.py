@@ -1,0 +1,81 @@
+"""The ``cgamap`` command line: one entry point, subcommands registered by modules.
+
+Each feature module exposes ``register(subparsers)`` that adds its subcommands and sets
+``func`` on them; the list below is the only place that names them.  A subcommand's
+function returns the process exit code.  Bad input is reported as one line on stderr
+(``cgamap: <what>: <problem>``) with a non-zero exit, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from importlib.metadata import PackageNotFoundError, version
+
+# Modules that add subcommands (imported lazily so `cgamap --version` stays fast).
+COMMAND_MODULES = [
+    "cgamap.daemon.cmd_selfcheck",
+    "cgamap.daemon.cmd_lasers",
+    "cgamap.daemon.cmd_sim",
+    "cgamap.daemon.cmd_base",
+    "cgamap.daemon.cmd_mapping",
+    "cgamap.daemon.cmd_planes",
+    "cgamap.daemon.cmd_daemon",
+    "cgamap.calib.cli",
+]
+
+
+class UsageError(Exception):
+    """Raised by a subcommand for bad input: printed as one line, exit code 2 (or .code)."""
+
+    def __init__(self, message: str, code: int = 2):
+        super().__init__(message)
+        self.code = code
+
+
+def package_version() -> str:
+    try:
+        return version("cgamap")
+    except PackageNotFoundError:  # running from a source tree without install
+        return "0+unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cgamap", description="Robot sensing and mapping in conformal geometric algebra."
+    )
+    parser.add_argument("--version", action="version", version=f"cgamap {package_version()}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # feature not present in this build
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        print(f"cgamap: {exc}", file=sys.stderr)
+        return exc.code
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

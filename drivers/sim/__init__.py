@@ -1,0 +1,1 @@
+"""cgamap.drivers.sim."""

@@ -1,0 +1,37 @@
+"""Shared test helpers: where the real data lives, and how absent data is handled."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def data_dir() -> Path:
+    """Real data: $CGAMAP_DATA, else ../shared/data beside the repository."""
+    env = os.environ.get("CGAMAP_DATA")
+    if env:
+        return Path(env)
+    for cand in (REPO.parent / "shared" / "data", Path("/work/shared/data")):
+        if cand.is_dir():
+            return cand
+    return REPO.parent / "shared" / "data"
+
+
+def require_data(relpath: str) -> Path:
+    """Path of a real data file; skip when absent, but fail under CI (CI=true)."""
+    path = data_dir() / relpath
+    if not path.exists():
+        msg = f"real data {relpath} not found under {data_dir()} (set CGAMAP_DATA)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return path
+
+
+@pytest.fixture
+def shared_data():
+    return require_data
