@@ -1,0 +1,174 @@
+"""CARMEN log reader: FLASER / RLASER / ODOM / ROBOTLASER1 lines as typed messages.
+
+Old CARMEN format (see ../shared/reference/lasers.md §4.3), one message per line:
+
+    ODOM x y theta tv rv accel ipc_timestamp host logger_timestamp
+    FLASER n r_1 .. r_n x y theta odom_x odom_y odom_theta ipc_timestamp host logger_timestamp
+    ROBOTLASER1 type start_angle fov ang_res max_range accuracy remission_mode n r_1..r_n
+                n_rem rem.. laser_x laser_y laser_th robot_x robot_y robot_th tv rv
+                fwd_safety side_safety turn_axis ipc_timestamp host logger_timestamp
+
+FLASER/RLASER carry no angles: 180° field of view, first beam at -pi/2, step pi/n for n = 180
+or 360, pi/(n-1) for n = 181 or 361 (DESIGN.md).  Ranges at or above the sensor maximum mean
+"no return" and become NaN.  ``stamp_ns`` is the line's ipc timestamp in ns.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .messages import LaserScan, OdometryPose
+
+# Ranges at or above this mean "no return" for SICK LMS logs (81.83 / 81.91 in CARMEN logs).
+DEFAULT_MAX_RANGE = 81.0
+
+
+class CarmenFormatError(ValueError):
+    """A malformed line; the message names file:line."""
+
+
+@dataclass
+class CarmenStats:
+    """What the reader saw: message counts and skipped lines (lenient mode)."""
+
+    lines: int = 0
+    scans: int = 0
+    odometry: int = 0
+    skipped: int = 0
+    ignored: int = 0  # well-formed lines of other types (PARAM, NEFF, comments, ...)
+    first_error: str | None = None
+    by_type: dict[str, int] = field(default_factory=dict)
+
+
+def beam_geometry(n: int) -> tuple[float, float]:
+    """(angle_min, angle_increment) of an n-beam FLASER scan over 180° (DESIGN.md)."""
+    if n in (181, 361):
+        return -math.pi / 2, math.pi / (n - 1)
+    return -math.pi / 2, math.pi / n
+
+
+def _open(path: Path):
+    with open(path, "rb") as fh:
+        magic = fh.read(2)
+    if magic == b"\x1f\x8b":
+        return gzip.open(path, "rt", encoding="ascii", errors="replace")
+    return open(path, encoding="ascii", errors="replace")
+
+
+def _stamp_ns(seconds: float) -> int:
+    return int(round(seconds * 1e9))
+
+
+def _ranges(raw: list[str], max_range: float) -> np.ndarray:
+    r = np.array(raw, dtype=float)
+    return np.where((r >= max_range) | (r <= 0) | ~np.isfinite(r), np.nan, r)
+
+
+def _parse_flaser(tok: list[str], seq: int, max_range: float, frame: str) -> LaserScan:
+    n = int(tok[1])
+    if n <= 0 or len(tok) < 2 + n + 9:
+        raise ValueError(f"expected {n} ranges + 9 fields, got {len(tok) - 2} fields")
+    ranges = _ranges(tok[2:2 + n], max_range)
+    x, y, th, ox, oy, oth = (float(v) for v in tok[2 + n:2 + n + 6])
+    t = float(tok[2 + n + 6])
+    amin, inc = beam_geometry(n)
+    return LaserScan(
+        seq=seq, stamp_ns=_stamp_ns(t), angle_min=amin, angle_increment=inc, ranges=ranges,
+        range_min=0.0, range_max=max_range, frame=frame,
+        pose_ref=(x, y, th), pose_odom=(ox, oy, oth),
+    )
+
+
+def _parse_robotlaser(tok: list[str], seq: int) -> LaserScan:
+    start, fov, res, maxr = (float(v) for v in tok[2:6])
+    n = int(tok[8])
+    ranges_raw = tok[9:9 + n]
+    k = 9 + n
+    n_rem = int(tok[k])
+    k += 1 + n_rem
+    if len(tok) < k + 14 or len(ranges_raw) != n:
+        raise ValueError("ROBOTLASER1 line too short")
+    lx, ly, lth, rx, ry, rth = (float(v) for v in tok[k:k + 6])
+    t = float(tok[k + 11])
+    inc = res if n <= 1 else fov / (n - 1)
+    return LaserScan(
+        seq=seq, stamp_ns=_stamp_ns(t), angle_min=start, angle_increment=inc,
+        ranges=_ranges(ranges_raw, maxr), range_min=0.0, range_max=maxr,
+        pose_ref=(lx, ly, lth), pose_odom=(rx, ry, rth),
+    )
+
+
+def _parse_odom(tok: list[str], seq: int) -> OdometryPose:
+    if len(tok) < 8:
+        raise ValueError("ODOM needs x y theta tv rv accel timestamp")
+    x, y, th, tv, rv = (float(v) for v in tok[1:6])
+    t = float(tok[7])
+    return OdometryPose(stamp_ns=_stamp_ns(t), x=x, y=y, theta=th, tv=tv, rv=rv, seq=seq)
+
+
+def read_carmen(
+    path: str | Path,
+    *,
+    lenient: bool = False,
+    max_range: float = DEFAULT_MAX_RANGE,
+    stats: CarmenStats | None = None,
+    types: tuple[str, ...] = ("FLASER", "RLASER", "ROBOTLASER1", "ODOM"),
+) -> Iterator[LaserScan | OdometryPose]:
+    """Yield LaserScan (FLASER, RLASER, ROBOTLASER1) and OdometryPose (ODOM) in log order.
+
+    Malformed lines raise CarmenFormatError naming ``file:line``; with ``lenient`` they are
+    counted in ``stats.skipped`` and skipped.  Gzipped logs are detected by their magic bytes.
+    """
+    path = Path(path)
+    st = stats if stats is not None else CarmenStats()
+    seq = {"laser": 0, "rear": 0, "odom": 0}
+    with _open(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            st.lines += 1
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                st.ignored += 1
+                continue
+            kind = tok[0]
+            if kind not in types:
+                st.ignored += 1
+                continue
+            try:
+                if kind in ("FLASER", "RLASER"):
+                    frame = "laser" if kind == "FLASER" else "rear_laser"
+                    key = "laser" if kind == "FLASER" else "rear"
+                    msg = _parse_flaser(tok, seq[key], max_range, frame)
+                    seq[key] += 1
+                    st.scans += 1
+                elif kind == "ROBOTLASER1":
+                    msg = _parse_robotlaser(tok, seq["laser"])
+                    seq["laser"] += 1
+                    st.scans += 1
+                else:
+                    msg = _parse_odom(tok, seq["odom"])
+                    seq["odom"] += 1
+                    st.odometry += 1
+            except (ValueError, IndexError) as exc:
+                where = f"{path}:{lineno}: malformed {kind} line ({exc})"
+                if not lenient:
+                    raise CarmenFormatError(where) from None
+                st.skipped += 1
+                if st.first_error is None:
+                    st.first_error = where
+                continue
+            st.by_type[kind] = st.by_type.get(kind, 0) + 1
+            yield msg
+
+
+def read_scans(path: str | Path, *, lenient: bool = False,
+               stats: CarmenStats | None = None) -> list[LaserScan]:
+    """All front-laser scans of a log (FLASER or ROBOTLASER1), in order."""
+    return [m for m in read_carmen(path, lenient=lenient, stats=stats,
+                                   types=("FLASER", "ROBOTLASER1"))
+            if isinstance(m, LaserScan)]

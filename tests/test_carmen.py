@@ -1,0 +1,83 @@
+"""CARMEN log reader: message types, beam geometry, no-return handling, errors."""
+
+from __future__ import annotations
+
+import gzip
+import math
+
+import numpy as np
+import pytest
+from cgamap.drivers.carmen import (
+    CarmenFormatError,
+    CarmenStats,
+    beam_geometry,
+    read_carmen,
+    read_scans,
+)
+from cgamap.drivers.messages import LaserScan, OdometryPose
+from conftest import require_data
+
+
+def _flaser(n: int, r: float = 2.0, t: float = 12.5) -> str:
+    ranges = " ".join([f"{r}"] * (n - 1) + ["81.83"])
+    return f"FLASER {n} {ranges} 1.0 2.0 0.5 1.1 2.1 0.6 {t} host {t}\n"
+
+
+def test_beam_geometry():
+    assert beam_geometry(180) == (-math.pi / 2, math.pi / 180)
+    assert beam_geometry(361) == (-math.pi / 2, math.pi / 360)
+    amin, inc = beam_geometry(181)
+    assert amin + 180 * inc == pytest.approx(math.pi / 2)
+
+
+def test_reads_all_types(tmp_path):
+    log = tmp_path / "a.log"
+    log.write_text(
+        "# comment\nPARAM robot_frontlaser_offset 0.0 nohost 0\n"
+        "ODOM 0.5 0.25 0.1 0.3 0.01 0 10.0 host 10.0\n" + _flaser(180) + "NEFF 15\n"
+    )
+    st = CarmenStats()
+    msgs = list(read_carmen(log, stats=st))
+    assert isinstance(msgs[0], OdometryPose) and msgs[0].stamp_ns == 10_000_000_000
+    scan = msgs[1]
+    assert isinstance(scan, LaserScan)
+    assert scan.stamp_ns == 12_500_000_000
+    assert scan.pose_ref == (1.0, 2.0, 0.5) and scan.pose_odom == (1.1, 2.1, 0.6)
+    assert len(scan.ranges) == 180 and np.isnan(scan.ranges[-1])
+    assert np.all(scan.ranges[:-1] == 2.0)
+    assert st.scans == 1 and st.odometry == 1 and st.ignored == 3
+
+
+def test_gzip_and_robotlaser(tmp_path):
+    n = 5
+    line = ("ROBOTLASER1 0 -1.5708 3.14159 0.785398 20.0 0.01 0 5 1 2 3 20 4 0 "
+            "0.1 0.2 0.3 1 2 0.4 0 0 0 0 0 7.25 host 7.25\n")
+    log = tmp_path / "b.log.gz"
+    with gzip.open(log, "wt") as fh:
+        fh.write(line)
+    (scan,) = read_scans(log)
+    assert scan.pose_ref == (0.1, 0.2, 0.3)
+    assert scan.angle_increment == pytest.approx(3.14159 / (n - 1))
+    assert np.isnan(scan.ranges[3]) and scan.ranges[4] == 4.0
+    assert scan.stamp_ns == 7_250_000_000
+
+
+def test_malformed_names_file_and_line(tmp_path):
+    log = tmp_path / "c.log"
+    log.write_text(_flaser(180) + "FLASER 180 1 2 3\n" + "ODOM 1 x 3 0 0 0 1 h 1\n")
+    with pytest.raises(CarmenFormatError, match=r"c\.log:2"):
+        list(read_carmen(log))
+    st = CarmenStats()
+    msgs = list(read_carmen(log, lenient=True, stats=st))
+    assert len(msgs) == 1 and st.skipped == 2 and "c.log:2" in st.first_error
+
+
+def test_intel_log():
+    path = require_data("laser/intel-corrected.log.gz")
+    st = CarmenStats()
+    scans = read_scans(path, stats=st)
+    assert len(scans) == 910 and st.skipped == 0
+    assert all(len(s.ranges) == 180 for s in scans)
+    stamps = np.array([s.stamp_ns for s in scans])
+    assert np.all(np.diff(stamps) >= 0)
+    assert scans[0].pose_ref == pytest.approx((0.600266, -0.0320327, -0.354665))
