@@ -79,5 +79,7 @@ def test_intel_log():
     assert len(scans) == 910 and st.skipped == 0
     assert all(len(s.ranges) == 180 for s in scans)
     stamps = np.array([s.stamp_ns for s in scans])
-    assert np.all(np.diff(stamps) >= 0)
+    # the real log's ipc stamps step back a little in 4 places; kept as recorded
+    assert np.mean(np.diff(stamps) > 0) > 0.99
+    assert stamps[0] == 32_906_800_000
     assert scans[0].pose_ref == pytest.approx((0.600266, -0.0320327, -0.354665))
