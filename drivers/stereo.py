@@ -1,0 +1,190 @@
+"""The stereo camera grabber: one frame type, one interface, backends chosen by config/URL.
+
+Backends (``open_grabber``): ``depthai`` (an OAK, StereoDepth on the device), ``opencv`` (two
+cameras or one side-by-side UVC camera, rectified and matched on the host with StereoSGBM),
+``synthetic`` (the simulated 3D world rendered as a textured pair, same SGBM path, ground
+truth attached), and ``replay`` (a recorded folder of image pairs + calibration, same path).
+Every backend yields ``StereoFrame``s; ``frame_points`` / ``points_from_stereo_pair`` turn
+them into points, and ``stereo_points.camera_motor`` carries the points to the global frame.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .messages import PanTiltState
+from .stereo_calib import (
+    StereoCalibration,
+    as_calibration,
+    load_calibration,
+    rectified_calibration,
+    save_calibration,
+)
+from .stereo_points import depth_to_points, disparity_to_depth, disparity_to_points
+from .stereo_sgbm import SgbmParams, compute_disparity
+
+__all__ = [
+    "StereoFrame", "StereoGrabber", "StereoCalibration", "SgbmParams", "load_calibration",
+    "save_calibration", "rectified_calibration", "points_from_stereo_pair", "frame_points",
+    "nearest_pantilt", "pair_with_pantilt", "open_grabber", "BACKENDS",
+]
+
+
+@dataclass
+class StereoFrame:
+    """One stereo frame in the rectified geometry of its calibration.
+
+    ``disparity`` in pixels (float32, NaN = no match) and/or ``depth`` in metres (NaN = none);
+    ``left`` (and ``right`` when the backend has it) the rectified images; ``ground_truth`` the
+    true depth of the left image (synthetic backend only).
+    """
+
+    seq: int
+    stamp_ns: int
+    calib: StereoCalibration
+    left: np.ndarray
+    right: np.ndarray | None = None
+    disparity: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    ground_truth: np.ndarray | None = None
+    device_stamp: int | None = None
+    pantilt: PanTiltState | None = None
+    pose_ref: tuple[float, float, float] | None = None  # robot pose (x, y, theta), if known
+    meta: dict = field(default_factory=dict)
+
+    def depth_image(self) -> np.ndarray:
+        """Depth in metres (from ``depth`` or derived from ``disparity``)."""
+        if self.depth is not None:
+            return self.depth
+        if self.disparity is None:
+            raise ValueError("stereo frame has neither depth nor disparity")
+        return disparity_to_depth(self.disparity, self.calib)
+
+
+class StereoGrabber:
+    """Backend interface: ``open()``, ``grab(timeout)`` -> StereoFrame, ``close()``;
+    iterable and a context manager.  Nothing touches a device before ``open()``."""
+
+    model = "abstract"
+
+    def open(self) -> None:
+        """Acquire the device (no-op for file and synthetic sources)."""
+
+    def grab(self, timeout: float = 5.0) -> StereoFrame:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the device."""
+
+    def __enter__(self) -> StereoGrabber:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def frames(self, count: int | None = None, timeout: float = 5.0) -> Iterator[StereoFrame]:
+        """Up to ``count`` frames (all available when None); stops at end of a sequence."""
+        n = 0
+        while count is None or n < count:
+            try:
+                frame = self.grab(timeout=timeout)
+            except StopIteration:
+                return
+            yield frame
+            n += 1
+
+
+def frame_points(frame: StereoFrame, max_depth: float = np.inf, stride: int = 1) -> np.ndarray:
+    """(n, 3) points of a frame in the left camera's optical frame (shared by all backends)."""
+    if frame.disparity is not None:
+        return disparity_to_points(frame.disparity, frame.calib, max_depth=max_depth,
+                                   stride=stride)
+    return depth_to_points(frame.depth_image(), frame.calib, max_depth=max_depth, stride=stride)
+
+
+def points_from_stereo_pair(left_img: np.ndarray, right_img: np.ndarray, calib,
+                            sgbm: SgbmParams | dict | None = None, max_depth: float = np.inf,
+                            stride: int = 1) -> np.ndarray:
+    """(n, 3) points, in the left camera's optical frame (x right, y down, z forward, metres),
+    from one stereo pair: rectify with the calibration, StereoSGBM disparity, reproject.
+
+    ``calib``: a ``StereoCalibration``, a dict of its YAML fields, or a calibration file path
+    (see ``stereo_calib``).  ``sgbm``: matcher parameters (default 64 disparities, or enough to
+    cover the image width's tenth, rounded up to 16).
+    """
+    calib = as_calibration(calib)
+    params = sgbm if isinstance(sgbm, SgbmParams) else SgbmParams.from_dict(sgbm)
+    left, right = calib.rectify(np.asarray(left_img), np.asarray(right_img))
+    disp = compute_disparity(left, right, params)
+    return disparity_to_points(disp, calib, max_depth=max_depth, stride=stride)
+
+
+def nearest_pantilt(stamp_ns: int, states: Sequence[PanTiltState],
+                    max_gap_ns: int | None = None) -> PanTiltState | None:
+    """The pan-tilt state nearest in time to ``stamp_ns`` (states sorted by stamp_ns);
+    None when there is none within ``max_gap_ns``."""
+    if not states:
+        return None
+    stamps = [s.stamp_ns for s in states]
+    i = bisect.bisect_left(stamps, stamp_ns)
+    cands = [j for j in (i - 1, i) if 0 <= j < len(states)]
+    best = min(cands, key=lambda j: abs(stamps[j] - stamp_ns))
+    if max_gap_ns is not None and abs(stamps[best] - stamp_ns) > max_gap_ns:
+        return None
+    return states[best]
+
+
+def pair_with_pantilt(frame: StereoFrame, states: Sequence[PanTiltState],
+                      max_gap_ns: int | None = 100_000_000) -> StereoFrame:
+    """Attach the nearest pan-tilt state (within ``max_gap_ns``, default 100 ms) to a frame."""
+    frame.pantilt = nearest_pantilt(frame.stamp_ns, states, max_gap_ns)
+    return frame
+
+
+BACKENDS = ("depthai", "opencv", "synthetic", "replay")
+
+
+def open_grabber(model: str, device: str | None = None, config: dict | None = None
+                 ) -> StereoGrabber:
+    """Make (not open) a grabber.  ``model`` is a backend name; ``device`` its URL:
+
+    * depthai: ``""`` / ``"auto"`` (first device) or a device id / IP;
+    * opencv: ``"0,1"`` (two cameras), ``"0"`` or ``"sbs:0"`` (one side-by-side camera), or
+      video file paths; needs ``config["calibration"]`` (a file path) unless rectified;
+    * synthetic: a world name (``"corridor"``, ``"stairs"``, …);
+    * replay: a folder of recorded pairs (see ``stereo_replay``).
+    ``config`` carries backend settings (``sgbm``, ``calibration``, ``size``, ``fps``, …).
+    """
+    config = dict(config or {})
+    if model == "depthai":
+        from .stereo_depthai import DepthaiGrabber
+
+        return DepthaiGrabber(device or "", **config)
+    if model == "opencv":
+        from .stereo_opencv import OpenCVGrabber
+
+        return OpenCVGrabber(device or "0,1", **config)
+    if model == "synthetic":
+        from .sim.stereo_render import SyntheticGrabber
+
+        return SyntheticGrabber(device or "corridor", **config)
+    if model == "replay":
+        from .stereo_replay import ReplayGrabber
+
+        return ReplayGrabber(device or ".", **config)
+    raise ValueError(f"stereo: unknown model {model!r} (choose from {', '.join(BACKENDS)})")
+
+
+def sgbm_frame(seq: int, stamp_ns: int, left: np.ndarray, right: np.ndarray,
+               calib: StereoCalibration, params: SgbmParams, matcher=None,
+               **extra) -> StereoFrame:
+    """Host-side path shared by the opencv, synthetic and replay backends: rectify, match."""
+    left_r, right_r = calib.rectify(left, right)
+    disp = compute_disparity(left_r, right_r, params, matcher=matcher)
+    return StereoFrame(seq=seq, stamp_ns=stamp_ns, calib=calib, left=left_r, right=right_r,
+                       disparity=disp, **extra)
