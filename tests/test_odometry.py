@@ -1,0 +1,139 @@
+"""Odometry model (mapping/odometry.py): arc integration, motor composition, noise presets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from cgamap.cga import motor_from_pose2d
+from cgamap.mapping.odometry import (
+    ODOM_NOISE_PRESETS,
+    WheelGeometry,
+    add_odometry_noise,
+    compose_motor,
+    compose_pose2d,
+    integrate_increments,
+    integrate_motor,
+    motor_pose2d,
+    planar_motor,
+    pose_increments,
+    ticks_to_increment,
+    velocities,
+    wheel_distance_to_increment,
+    wrap_angle,
+)
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+GEOM = WheelGeometry(wheel_radius=0.05, track_width=0.3, ticks_per_rev=4096)
+
+
+def test_straight_line_ticks():
+    ticks = GEOM.ticks_per_rev  # one revolution of both wheels
+    inc = ticks_to_increment(ticks, ticks, GEOM)
+    assert np.allclose(inc, [2 * np.pi * 0.05, 0.0, 0.0])
+
+
+def test_turn_in_place():
+    # wheels roll +-s: the base turns 2 s / track about its centre, no translation
+    inc = wheel_distance_to_increment(-0.15, 0.15, 0.3)
+    assert np.allclose(inc, [0.0, 0.0, 1.0])
+
+
+def test_exact_arc_against_fine_integration():
+    # a quarter circle of radius 1 m in one step lands at (1, 1, pi/2) exactly
+    r, b = 1.0, 0.3
+    th = np.pi / 2
+    inc = wheel_distance_to_increment((r - b / 2) * th, (r + b / 2) * th, b)
+    assert np.allclose(inc, [1.0, 1.0, th], atol=1e-12)
+    # and the same arc cut into 1000 pieces composes to the same place
+    pieces = wheel_distance_to_increment(np.full(1000, (r - b / 2) * th / 1000),
+                                         np.full(1000, (r + b / 2) * th / 1000), b)
+    assert np.allclose(integrate_increments(pieces)[-1], [1.0, 1.0, th], atol=1e-9)
+
+
+@pytest.mark.parametrize("dth", [0.0, 1e-12, 1e-7, 1e-4])
+def test_small_turns_keep_precision(dth):
+    # series: dx = ds (1 - t^2/6), dy = ds t/2 (1 - t^2/12) for ds = 1
+    inc = wheel_distance_to_increment(1.0 - 0.15 * dth, 1.0 + 0.15 * dth, 0.3)
+    assert inc[0] == pytest.approx(1.0 - dth**2 / 6, rel=1e-14)
+    t = inc[2]  # the turn as the wheel inputs round it
+    assert t == pytest.approx(dth, rel=1e-2, abs=1e-300)
+    assert inc[1] == pytest.approx(t / 2 * (1 - t**2 / 12), rel=1e-13, abs=1e-300)
+
+
+def test_encoder_sign_flip():
+    g = WheelGeometry(left_sign=-1)
+    inc = ticks_to_increment(-1000, 1000, g)
+    assert inc[2] == pytest.approx(0.0) and inc[0] > 0
+
+
+pose3 = st.tuples(st.floats(-10, 10), st.floats(-10, 10), st.floats(-3.1, 3.1))
+
+
+@settings(max_examples=30, deadline=None)
+@given(pose3)
+def test_planar_motor_is_core_motor(p):
+    assert np.allclose(planar_motor(*p).v, motor_from_pose2d(*p).v, atol=1e-12)
+    assert np.allclose(motor_pose2d(planar_motor(*p))[:2], p[:2], atol=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(pose3, pose3)
+def test_compose_matches_motor_product(p, q):
+    mine = compose_pose2d(p, q)
+    via_motor = motor_pose2d(compose_motor(planar_motor(*p), q))
+    assert np.allclose(mine[:2], via_motor[:2], atol=1e-9)
+    assert abs(wrap_angle(mine[2] - via_motor[2])) < 1e-9
+
+
+def test_integrate_matches_motor_chain_and_inverts():
+    rng = np.random.default_rng(1)
+    inc = np.column_stack([rng.uniform(0, 0.5, 40), rng.uniform(-0.05, 0.05, 40),
+                           rng.uniform(-0.4, 0.4, 40)])
+    poses = integrate_increments(inc, (1.0, -2.0, 0.3))
+    M = integrate_motor(inc, planar_motor(1.0, -2.0, 0.3))
+    assert np.allclose(motor_pose2d(M), poses[-1], atol=1e-9)
+    assert np.allclose(pose_increments(poses), inc, atol=1e-12)
+
+
+def test_velocities_constant_arc():
+    inc = wheel_distance_to_increment(0.9, 1.1, 0.4)  # ds = 1, dth = 0.5
+    v, w = velocities(inc, 0.5)
+    assert v == pytest.approx(2.0) and w == pytest.approx(1.0)
+
+
+def _square_loop(n=400):
+    t = np.linspace(0, 4 * 2 * np.pi, n)
+    return np.column_stack([3 * np.cos(t / 4), 3 * np.sin(t / 4), wrap_angle(t / 4 + np.pi / 2)])
+
+
+def test_noise_presets_deterministic_and_ordered():
+    ref = _square_loop()
+    assert np.array_equal(add_odometry_noise(ref, "none", 3), ref)
+    a = add_odometry_noise(ref, "high", seed=7)
+    b = add_odometry_noise(ref, "high", seed=7)
+    c = add_odometry_noise(ref, "high", seed=8)
+    assert a.shape == ref.shape and np.array_equal(a, b) and not np.array_equal(a, c)
+    assert np.allclose(a[0], ref[0])
+    err = {k: np.mean([np.linalg.norm(add_odometry_noise(ref, k, s)[-1, :2] - ref[-1, :2])
+                       for s in range(10)]) for k in ("low", "high")}
+    assert 0 < err["low"] < err["high"]
+
+
+def test_high_preset_matches_design_figures():
+    # a straight 10 m drive: length grows by the 2 % bias, heading drifts 0.5 deg per metre
+    ref = np.column_stack([np.linspace(0, 10, 1001), np.zeros(1001), np.zeros(1001)])
+    runs = np.array([add_odometry_noise(ref, "high", s) for s in range(20)])
+    inc = np.array([pose_increments(r) for r in runs])
+    length = np.hypot(inc[..., 0], inc[..., 1]).sum(axis=1)
+    turn = inc[..., 2].sum(axis=1)
+    assert np.mean(length) > 10 * 1.02  # bias plus the positive mean of noisy step lengths
+    assert np.mean(turn) == pytest.approx(np.deg2rad(5.0), abs=np.deg2rad(1.0))
+    p = ODOM_NOISE_PRESETS["high"]
+    assert (p.trans_bias, p.trans_rel, p.trans_abs) == (0.02, 0.05, 0.005)
+    assert (p.rot_rel, p.rot_abs, p.rot_per_m) == (0.02, 0.002, 0.01)
+
+
+def test_unknown_preset_is_clear():
+    with pytest.raises(ValueError, match="preset 'medium'"):
+        add_odometry_noise(np.zeros((3, 3)), "medium", 0)
