@@ -115,7 +115,8 @@ def from_raw(K1, D1, K2, D2, R, T, size: tuple[int, int], alpha: float = 0.0) ->
 
 def calibration_from_dict(d: dict) -> StereoCalibration:
     """Build a calibration from either YAML form (see the module docstring)."""
-    size = tuple(int(v) for v in d["size"]) if d.get("size") is not None else None
+    size = (tuple(int(v) for v in np.asarray(d["size"]).ravel())
+            if d.get("size") is not None else None)
     if all(k in d for k in ("K1", "D1", "K2", "D2", "R", "T")):
         if size is None:
             raise ValueError("stereo calibration: 'size' is required with K1/D1/K2/D2/R/T")
