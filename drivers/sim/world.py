@@ -1,0 +1,225 @@
+"""The simulated 2D world the laser twins sense: walls as segments, a trajectory, a noise model.
+
+Sensor-agnostic: :meth:`World.raycast` answers "how far along these rays is the first wall"
+for any ray fan; the twins encode the answer in their own wire format.  Walls are records with
+a base height and a height (``Wall.z0``, ``Wall.height``) so 3D renderers can extrude them;
+the 2D ray cast ignores heights.
+
+Coordinates: metres, world frame x/y, headings counter-clockwise from +x (radians).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A wall segment from (x0, y0) to (x1, y1), standing from ``z0`` to ``z0 + height``."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    height: float = 2.5
+    z0: float = 0.0
+    kind: str = "wall"  # "wall", "furniture", ... (renderers may colour by it)
+
+
+@dataclass
+class NoiseModel:
+    """Range noise of a simulated sensor.
+
+    ``sigma`` (m) Gaussian noise on every return; ``sigma_rel`` adds noise proportional to the
+    range; ``dropout`` is the probability that a beam returns nothing (NaN).
+    """
+
+    sigma: float = 0.01
+    sigma_rel: float = 0.0
+    dropout: float = 0.0
+
+    def apply(self, ranges: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Noisy copy of ``ranges``: no-return (inf/NaN) beams and dropouts come out NaN."""
+        r = np.asarray(ranges, dtype=float)
+        finite = np.isfinite(r)
+        scale = self.sigma + self.sigma_rel * np.where(finite, np.abs(r), 0.0)
+        out = np.where(finite, r + rng.normal(0.0, 1.0, r.shape) * scale, np.nan)
+        out = np.maximum(out, 0.0)
+        if self.dropout > 0:
+            out[rng.random(r.shape) < self.dropout] = np.nan
+        return out
+
+
+def _centripetal(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray, p3: np.ndarray,
+                 u: np.ndarray) -> np.ndarray:
+    """Centripetal Catmull-Rom (alpha = 1/2) between p1 and p2 at fractions u (no cusps or
+    self-intersections, unlike the uniform form with unevenly spaced waypoints)."""
+    t1 = np.linalg.norm(p1 - p0) ** 0.5
+    t2 = t1 + np.linalg.norm(p2 - p1) ** 0.5
+    t3 = t2 + np.linalg.norm(p3 - p2) ** 0.5
+    t = t1 + u * (t2 - t1)
+    a1 = ((t1 - t) * p0 + t * p1) / t1
+    a2 = ((t2 - t) * p1 + (t - t1) * p2) / (t2 - t1)
+    a3 = ((t3 - t) * p2 + (t - t2) * p3) / (t3 - t2)
+    b1 = ((t2 - t) * a1 + t * a2) / t2
+    b2 = ((t3 - t) * a2 + (t - t1) * a3) / (t3 - t1)
+    return ((t2 - t) * b1 + (t - t1) * b2) / (t2 - t1)
+
+
+def _rect(x0: float, y0: float, x1: float, y1: float, **kw) -> list[Wall]:
+    return [Wall(x0, y0, x1, y0, **kw), Wall(x1, y0, x1, y1, **kw),
+            Wall(x1, y1, x0, y1, **kw), Wall(x0, y1, x0, y0, **kw)]
+
+
+def _polyline(points: list[tuple[float, float]], closed: bool = False, **kw) -> list[Wall]:
+    pts = list(points) + ([points[0]] if closed else [])
+    return [Wall(a[0], a[1], b[0], b[1], **kw) for a, b in zip(pts[:-1], pts[1:], strict=True)]
+
+
+@dataclass
+class World:
+    """Walls plus a closed, smooth, deterministic path through them."""
+
+    name: str
+    walls: list[Wall]
+    waypoints: np.ndarray          # (k, 2) closed loop the trajectory passes through
+    speed: float = 0.5             # m/s along the path
+    _path: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+
+    @property
+    def segments(self) -> np.ndarray:
+        """(n, 4) array of x0, y0, x1, y1."""
+        return np.array([[w.x0, w.y0, w.x1, w.y1] for w in self.walls], dtype=float)
+
+    @property
+    def heights(self) -> np.ndarray:
+        """(n, 2) array of z0 and height per wall, in the order of :attr:`segments`."""
+        return np.array([[w.z0, w.height] for w in self.walls], dtype=float)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        s = self.segments
+        xs, ys = s[:, [0, 2]], s[:, [1, 3]]
+        return float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())
+
+    def raycast(self, x: float, y: float, theta: float, angles: np.ndarray,
+                max_range: float = np.inf) -> np.ndarray:
+        """Distance to the first wall along each beam at ``theta + angles`` from (x, y).
+
+        Vectorised over beams × walls.  Beams that hit nothing within ``max_range`` give inf.
+        """
+        seg = self.segments
+        a = theta + np.asarray(angles, dtype=float)
+        d = np.stack([np.cos(a), np.sin(a)], axis=-1)[:, None, :]        # (m, 1, 2)
+        p0 = seg[None, :, 0:2]                                              # (1, n, 2)
+        e = seg[None, :, 2:4] - p0                                          # (1, n, 2)
+        w = p0 - np.array([x, y])                                           # (1, n, 2)
+        denom = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]               # (m, n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (w[..., 0] * e[..., 1] - w[..., 1] * e[..., 0]) / denom     # along the ray
+            s = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / denom     # along the wall
+        hit = (np.abs(denom) > 1e-12) & (t > 1e-9) & (s >= 0.0) & (s <= 1.0)
+        t = np.where(hit, t, np.inf)
+        r = t.min(axis=1) if t.shape[1] else np.full(len(a), np.inf)
+        r[r > max_range] = np.inf
+        return r
+
+    def scan(self, t: float, angles: np.ndarray, max_range: float,
+             noise: NoiseModel | None, rng: np.random.Generator,
+             mount: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+        """Ranges of a sensor mounted at ``mount`` (x, y, yaw in the robot frame) at time t;
+        no-return beams NaN once noise is applied, inf without a noise model."""
+        x, y, th = self.trajectory(t)
+        c, s = np.cos(th), np.sin(th)
+        sx, sy = x + c * mount[0] - s * mount[1], y + s * mount[0] + c * mount[1]
+        r = self.raycast(sx, sy, th + mount[2], angles, max_range)
+        return noise.apply(r, rng) if noise is not None else r
+
+    # -- trajectory ------------------------------------------------------------------------
+    def _dense_path(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closed centripetal Catmull-Rom spline through the waypoints, densely sampled."""
+        if self._path is None:
+            p = np.asarray(self.waypoints, dtype=float)
+            k = len(p)
+            u = np.linspace(0.0, 1.0, 200, endpoint=False)[:, None]
+            chunks = []
+            for i in range(k):  # loop over waypoints (a handful), vectorised over samples
+                chunks.append(_centripetal(p[(i - 1) % k], p[i], p[(i + 1) % k],
+                                           p[(i + 2) % k], u))
+            pts = np.concatenate(chunks + [p[:1]])                          # closed
+            step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+            s = np.concatenate([[0.0], np.cumsum(step)])
+            dx = np.gradient(pts[:, 0], s, edge_order=1)
+            dy = np.gradient(pts[:, 1], s, edge_order=1)
+            # the closing point duplicates the first: use the true tangent there too
+            dx[-1], dy[-1] = dx[0], dy[0]
+            heading = np.unwrap(np.arctan2(dy, dx))
+            self._path = (s, pts, heading)
+        return self._path
+
+    @property
+    def path_length(self) -> float:
+        return float(self._dense_path()[0][-1])
+
+    def trajectory(self, t: float | np.ndarray) -> tuple:
+        """Pose (x, y, theta) of the robot at time ``t`` seconds (scalars or arrays).
+
+        The robot drives the closed path at ``speed``; theta wraps into (-pi, pi].
+        """
+        s, pts, heading = self._dense_path()
+        total = s[-1]
+        turns = np.floor_divide(np.asarray(t, dtype=float) * self.speed, total)
+        q = np.mod(np.asarray(t, dtype=float) * self.speed, total)
+        x = np.interp(q, s, pts[:, 0])
+        y = np.interp(q, s, pts[:, 1])
+        th = np.interp(q, s, heading) + turns * (heading[-1] - heading[0])
+        th = np.angle(np.exp(1j * th))
+        if np.ndim(t) == 0:
+            return float(x), float(y), float(th)
+        return x, y, th
+
+
+def _corridor() -> World:
+    # 20 m x 2 m corridor with two door niches and a pillar, closed at both ends.
+    walls = _polyline([(0, -1), (6, -1), (6, -1.8), (7, -1.8), (7, -1), (20, -1),
+                       (20, 1), (13, 1), (13, 1.8), (14.2, 1.8), (14.2, 1), (0, 1)], closed=True)
+    walls += _rect(9.8, 0.6, 10.2, 1.0, kind="pillar")
+    way = np.array([[1.5, -0.5], [10.0, -0.5], [17.8, -0.5], [18.3, 0.0], [17.8, 0.5],
+                    [13.0, 0.4], [10.0, 0.1], [7.0, 0.4], [1.5, 0.5], [1.0, 0.0]])
+    return World("corridor", walls, way, speed=0.6)
+
+
+def _room() -> World:
+    # 8 m x 6 m room; a table, a cabinet against a wall, a pillar, a box.
+    walls = _rect(0.0, 0.0, 8.0, 6.0)
+    walls += _rect(3.0, 2.4, 4.6, 3.4, kind="furniture", height=0.75)   # table
+    walls += _rect(6.8, 4.0, 8.0, 5.2, kind="furniture", height=1.8)    # cabinet
+    walls += _rect(1.2, 4.4, 1.6, 4.8, kind="pillar")
+    walls += _rect(5.5, 0.0, 6.4, 0.7, kind="furniture", height=0.6)    # box
+    way = np.array([[1.2, 1.2], [4.0, 1.1], [6.8, 1.5], [6.8, 3.2], [5.6, 4.8],
+                    [3.2, 4.8], [0.9, 3.4]])
+    return World("room", walls, way, speed=0.4)
+
+
+def _loop() -> World:
+    # A square loop of 2 m wide corridors around a 12 m x 8 m block, with a side alcove.
+    walls = _polyline([(0, 0), (16, 0), (16, 12), (0, 12)], closed=True)
+    walls += _rect(2.0, 2.0, 14.0, 10.0)
+    walls = [w for w in walls if not (w.x0 == 16 and w.x1 == 16)]
+    walls += _polyline([(16, 0), (16, 5), (17.5, 5), (17.5, 7), (16, 7), (16, 12)])
+    way = np.array([[1.0, 1.0], [8.0, 1.0], [15.0, 1.0], [15.0, 6.0], [15.0, 11.0],
+                    [8.0, 11.0], [1.0, 11.0], [1.0, 6.0]])
+    return World("loop", walls, way, speed=0.8)
+
+
+WORLDS = {"corridor": _corridor, "room": _room, "loop": _loop}
+
+
+def get_world(name: str) -> World:
+    """A fresh copy of the named world ("corridor", "room", "loop")."""
+    try:
+        return WORLDS[name]()
+    except KeyError:
+        raise ValueError(f"unknown world {name!r}; choose from {', '.join(sorted(WORLDS))}") \
+            from None

@@ -1,0 +1,333 @@
+"""Byte transports opened from a URL string, in the manner of pyserial's ``serial_for_url``.
+
+URLs understood by :func:`open_transport`:
+
+- ``serial:///dev/ttyUSB0?baud=500000`` or a plain device path ``/dev/ttyUSB0``.  The default
+  baud is 9600 (the SICK LMS2xx power-on rate; drivers that probe or switch rates call
+  :meth:`Transport.set_baud` themselves).  Options: ``baud``, ``exclusive=1`` (flock).
+- ``tcp://host:port`` (``socket://host:port`` is accepted too).
+- ``spy+<url>`` or ``<url>?trace=1``: a tracing wrapper that hex-dumps both directions to the
+  ``cgamap.drivers.transport.spy`` logger at INFO level (``cgamap -v``).
+
+Every read honours a timeout (select-based or pyserial's own); nothing busy-waits.  Failures to
+open, and a device that vanishes (USB unplug, pty closed, socket reset), raise
+:class:`TransportError`, a subclass of :class:`OSError`.
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import time
+from urllib.parse import parse_qs, urlsplit
+
+import serial
+
+log = logging.getLogger(__name__)
+spy_log = logging.getLogger(__name__ + ".spy")
+
+DEFAULT_BAUD = 9600
+
+
+class TransportError(OSError):
+    """The transport could not be opened, or the device behind it vanished."""
+
+
+class Transport:
+    """A bidirectional byte stream with timeouts.
+
+    Subclasses implement ``_raw_read(n, timeout)`` (returns b"" on timeout, raises
+    TransportError when the peer is gone), ``write`` and ``close``; the base class keeps a small
+    push-back buffer so that :meth:`read_until` never loses bytes that follow the terminator.
+    """
+
+    url: str
+
+    def __init__(self, url: str, timeout: float) -> None:
+        self.url = url
+        self.timeout = float(timeout)
+        self._buf = bytearray()
+        self.closed = False
+
+    # -- to implement -------------------------------------------------------------------
+    def _raw_read(self, n: int, timeout: float) -> bytes:
+        raise NotImplementedError
+
+    def write(self, data: bytes) -> int:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self.closed = True
+
+    # -- common ------------------------------------------------------------------------
+    def read(self, n: int, timeout: float | None = None) -> bytes:
+        """Up to ``n`` bytes: whatever is available once the first byte arrives; b"" on timeout."""
+        if n <= 0:
+            return b""
+        if self._buf:
+            out = bytes(self._buf[:n])
+            del self._buf[:n]
+            return out
+        return self._raw_read(n, self.timeout if timeout is None else timeout)
+
+    def read_exactly(self, n: int, timeout: float | None = None) -> bytes:
+        """Exactly ``n`` bytes, or fewer if the (overall) timeout passes first."""
+        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        out = bytearray()
+        while len(out) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            chunk = self.read(n - len(out), left)
+            if not chunk:
+                break
+            out += chunk
+        return bytes(out)
+
+    def read_until(self, terminator: bytes = b"\n", max_bytes: int = 65536,
+                   timeout: float | None = None) -> bytes:
+        """Bytes up to and including ``terminator``; on timeout or ``max_bytes`` whatever came."""
+        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        out = bytearray()
+        while True:
+            idx = out.find(terminator)
+            if idx >= 0:
+                end = idx + len(terminator)
+                self._buf[:0] = out[end:]
+                return bytes(out[:end])
+            if len(out) >= max_bytes:
+                self._buf[:0] = out[max_bytes:]
+                return bytes(out[:max_bytes])
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return bytes(out)
+            chunk = self.read(4096, left)
+            if not chunk:
+                return bytes(out)
+            out += chunk
+
+    def set_baud(self, baud: int) -> None:
+        """Change the line rate (serial only; a no-op on network transports)."""
+
+    def reset_input(self) -> None:
+        """Discard everything received so far."""
+        self._buf.clear()
+
+    def __enter__(self) -> Transport:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.url}>"
+
+
+class SerialTransport(Transport):
+    """A pyserial port (real UART, USB adapter, or the pty of a simulated device)."""
+
+    def __init__(self, url: str, path: str, baud: int, timeout: float,
+                 exclusive: bool = False) -> None:
+        super().__init__(url, timeout)
+        self.path = path
+        try:
+            self._ser = serial.Serial(path, baudrate=baud, timeout=timeout,
+                                      write_timeout=max(1.0, timeout),
+                                      exclusive=exclusive or None)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TransportError(f"cannot open serial port {path}: {exc}") from exc
+
+    @property
+    def baud(self) -> int:
+        return int(self._ser.baudrate)
+
+    def _raw_read(self, n: int, timeout: float) -> bytes:
+        try:
+            if self._ser.timeout != timeout:
+                self._ser.timeout = timeout
+            first = self._ser.read(1)
+            if not first:
+                return b""
+            more = min(n - 1, self._ser.in_waiting)
+            return first + (self._ser.read(more) if more > 0 else b"")
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            # TypeError/AttributeError: pyserial after close() from another thread (fd None).
+            raise TransportError(f"serial port {self.path} lost: {exc}") from exc
+
+    def write(self, data: bytes) -> int:
+        try:
+            return int(self._ser.write(data) or 0)
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            raise TransportError(f"serial port {self.path} lost: {exc}") from exc
+
+    def set_baud(self, baud: int) -> None:
+        try:
+            self._ser.baudrate = int(baud)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TransportError(f"serial port {self.path}: cannot set {baud} baud: {exc}") \
+                from exc
+
+    def reset_input(self) -> None:
+        super().reset_input()
+        try:
+            self._ser.reset_input_buffer()
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            raise TransportError(f"serial port {self.path} lost: {exc}") from exc
+
+    def close(self) -> None:
+        super().close()
+        try:
+            self._ser.close()
+        except (serial.SerialException, OSError):
+            pass
+
+
+class TcpTransport(Transport):
+    """A TCP client socket; reads wait in select() with the timeout."""
+
+    def __init__(self, url: str, host: str, port: int, timeout: float) -> None:
+        super().__init__(url, timeout)
+        self.host, self.port = host, port
+        try:
+            self._sock = socket.create_connection((host, port), timeout=max(timeout, 1.0))
+        except OSError as exc:
+            raise TransportError(f"cannot connect to {host}:{port}: {exc}") from exc
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock.settimeout(None)
+        self._sock.setblocking(False)
+
+    def _raw_read(self, n: int, timeout: float) -> bytes:
+        try:
+            ready, _, _ = select.select([self._sock], [], [], max(0.0, timeout))
+            if not ready:
+                return b""
+            data = self._sock.recv(n)
+        except BlockingIOError:
+            return b""
+        except (OSError, ValueError) as exc:
+            raise TransportError(f"connection to {self.host}:{self.port} lost: {exc}") from exc
+        if not data:
+            raise TransportError(f"connection to {self.host}:{self.port} closed by peer")
+        return data
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        deadline = time.monotonic() + max(1.0, self.timeout)
+        try:
+            while view:
+                _, ready, _ = select.select([], [self._sock], [], max(0.0,
+                                           deadline - time.monotonic()))
+                if not ready:
+                    raise TransportError(f"write to {self.host}:{self.port} timed out")
+                sent = self._sock.send(view)
+                view = view[sent:]
+        except TransportError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise TransportError(f"connection to {self.host}:{self.port} lost: {exc}") from exc
+        return len(data)
+
+    def reset_input(self) -> None:
+        super().reset_input()
+        while self._raw_read(65536, 0.0):
+            pass
+
+    def close(self) -> None:
+        super().close()
+        try:
+            self._sock.close()
+        except OSError:
+            pass
+
+
+class SpyTransport(Transport):
+    """Wraps another transport and hex-dumps every byte read and written to the log."""
+
+    def __init__(self, inner: Transport) -> None:
+        super().__init__("spy+" + inner.url, inner.timeout)
+        self.inner = inner
+
+    @staticmethod
+    def _dump(direction: str, data: bytes) -> None:
+        if data and spy_log.isEnabledFor(logging.INFO):
+            for i in range(0, len(data), 32):
+                chunk = data[i:i + 32]
+                text = "".join(chr(b) if 32 <= b < 127 else "." for b in chunk)
+                spy_log.info("%s %04x  %s  %s", direction, i, chunk.hex(" "), text)
+
+    def _raw_read(self, n: int, timeout: float) -> bytes:
+        data = self.inner.read(n, timeout)
+        self._dump("RX", data)
+        return data
+
+    def write(self, data: bytes) -> int:
+        self._dump("TX", data)
+        return self.inner.write(data)
+
+    def set_baud(self, baud: int) -> None:
+        spy_log.info("-- baud %d", baud)
+        self.inner.set_baud(baud)
+
+    def reset_input(self) -> None:
+        super().reset_input()
+        self.inner.reset_input()
+
+    def close(self) -> None:
+        super().close()
+        self.inner.close()
+
+    @property
+    def timeout(self) -> float:  # type: ignore[override]
+        return self.inner.timeout if hasattr(self, "inner") else self._timeout
+
+    @timeout.setter
+    def timeout(self, value: float) -> None:
+        self._timeout = value
+        if hasattr(self, "inner"):
+            self.inner.timeout = value
+
+
+def _flag(value: str) -> bool:
+    return value.lower() in ("1", "true", "yes", "on")
+
+
+def open_transport(url: str, timeout: float = 0.5, baud: int | None = None) -> Transport:
+    """Open the byte stream named by ``url`` (see the module docstring for the forms).
+
+    ``baud`` is the rate used when the URL gives none (default 9600).
+    """
+    if not url:
+        raise TransportError("empty device URL")
+    if url.startswith("spy+"):
+        return SpyTransport(open_transport(url[4:], timeout, baud))
+    if url.startswith("spy://"):
+        return SpyTransport(open_transport(url[6:], timeout, baud))
+    if "://" not in url:  # a plain device path, maybe with ?baud=...
+        url_for_parse = "serial://" + url
+    else:
+        url_for_parse = url
+    parts = urlsplit(url_for_parse)
+    query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    trace = _flag(query.pop("trace", "0"))
+    scheme = parts.scheme.lower()
+    if scheme == "serial":
+        path = parts.path if not parts.netloc else "/" + parts.netloc + parts.path
+        if not path:
+            raise TransportError(f"{url}: no device path")
+        try:
+            rate = int(query.pop("baud", baud or DEFAULT_BAUD))
+        except ValueError as exc:
+            raise TransportError(f"{url}: bad baud rate") from exc
+        exclusive = _flag(query.pop("exclusive", "0"))
+        tr: Transport = SerialTransport(url, path, rate, timeout, exclusive)
+    elif scheme in ("tcp", "socket"):
+        if not parts.hostname or parts.port is None:
+            raise TransportError(f"{url}: expected tcp://host:port")
+        tr = TcpTransport(url, parts.hostname, parts.port, timeout)
+    else:
+        raise TransportError(f"{url}: unknown transport scheme {scheme!r} "
+                             "(use serial://, a device path, tcp://, or spy+...)")
+    if query:
+        log.warning("%s: ignoring unknown options %s", url, ", ".join(sorted(query)))
+    return SpyTransport(tr) if trace else tr
