@@ -1,6 +1,6 @@
 """cgamap.cga: the conformal geometric algebra G(4,1) on numpy (see DESIGN.md)."""
 
-from .algebra import BLADE_NAMES, GRADE, Multivector, I, blade_index, e0, e1, e2, e3, einf, em, ep
+from .algebra import BLADE_NAMES, GRADE, I, Multivector, blade_index, e0, e1, e2, e3, einf, em, ep
 from .chains import camera_chain, laser_chain
 from .entities import (
     angle_diff,

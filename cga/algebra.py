@@ -70,52 +70,67 @@ LC = np.where((_GK == _GB - _GA) & (_GA <= _GB), GP, 0.0)
 # Scalar product table (used for norms): only terms landing on the scalar.
 REVERSE_SIGN = np.where((GRADE * (GRADE - 1) // 2) % 2 == 1, -1.0, 1.0)
 INVOLUTION_SIGN = np.where(GRADE % 2 == 1, -1.0, 1.0)
+GRADE_MASK = {k: (GRADE == k).tobytes() for k in range(DIM + 1)}
 _TABLES = {"gp": GP, "op": OP, "lc": LC}
 _CHUNK = 512  # batch rows per block in the pairwise kernel (bounds temporary memory)
 
 
 @lru_cache(maxsize=512)
 def _pairs(kind: str, act_a: bytes, act_b: bytes):
-    """Active components ia, ib and the (len(ia)*len(ib), 32) matrix T with
-    (a op b)[k] = sum_(i,j) a[ia_i] b[ib_j] T[i*len(ib)+j, k]."""
+    """Active components ia, ib, the output blades ko the product can reach from them, and
+    the (len(ia)*len(ib), len(ko)) matrix T with
+    (a op b)[ko_k] = sum_(i,j) a[ia_i] b[ib_j] T[i*len(ib)+j, k]."""
     table = _TABLES[kind]
     ia = np.flatnonzero(np.frombuffer(act_a, dtype=bool))
     ib = np.flatnonzero(np.frombuffer(act_b, dtype=bool))
     T = np.zeros((ia.size, ib.size, N))
     I, J = np.meshgrid(np.arange(ia.size), np.arange(ib.size), indexing="ij")
     T[I, J, PROD_INDEX[ia[I], ib[J]]] = table[ia[I], ib[J]]
-    return ia, ib, T.reshape(ia.size * ib.size, N)
+    T = T.reshape(ia.size * ib.size, N)
+    reach = np.any(T != 0, axis=0)
+    ko = np.flatnonzero(reach)
+    return ia, ib, ko, T[:, ko], reach.tobytes()
 
 
 def _active(x: np.ndarray) -> bytes:
+    """Components that are non-zero anywhere in the batch (a scan of the data)."""
     flat = x.reshape(-1, N)
     return np.any(flat != 0, axis=0).tobytes()
 
 
-def product(kind: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def product(kind: str, a: np.ndarray, b: np.ndarray, act_a: bytes | None = None,
+            act_b: bytes | None = None) -> tuple[np.ndarray, bytes]:
     """Bilinear product of coefficient arrays (..., 32) x (..., 32) -> (..., 32).
 
-    ``kind`` is 'gp' (geometric), 'op' (outer) or 'lc' (left contraction).  A single operand
-    against a batch becomes one matrix product; two batches go through the outer product of
-    their active components times the product table, in blocks of rows (BLAS does the sums).
+    ``kind`` is 'gp' (geometric), 'op' (outer) or 'lc' (left contraction).  ``act_a`` and
+    ``act_b`` are optional masks of the components that may be non-zero (known from how the
+    operands were built); without them the data is scanned.  Returns the product and the mask
+    of components it can reach.  A single operand against a batch becomes one matrix product;
+    two batches go through the outer product of their active components times the product
+    table, in blocks of rows (BLAS does the sums).
     """
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
-    ia, ib, T = _pairs(kind, _active(a), _active(b))
-    T3 = T.reshape(ia.size, ib.size, N)
-    if a.ndim == 1 and b.ndim > 1:
-        return b[..., ib] @ np.einsum("i,ijk->jk", a[ia], T3)
-    if b.ndim == 1 and a.ndim > 1:
-        return a[..., ia] @ np.einsum("j,ijk->ik", b[ib], T3)
+    ia, ib, ko, T, reach = _pairs(kind, act_a or _active(a), act_b or _active(b))
     shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    out = np.zeros(shape + (N,))
+    if ko.size == 0:
+        return out, reach
+    T3 = T.reshape(ia.size, ib.size, ko.size)
+    if a.ndim == 1 and b.ndim > 1:
+        out[..., ko] = b[..., ib] @ np.einsum("i,ijk->jk", a[ia], T3)
+        return out, reach
+    if b.ndim == 1 and a.ndim > 1:
+        out[..., ko] = a[..., ia] @ np.einsum("j,ijk->ik", b[ib], T3)
+        return out, reach
     a2 = np.broadcast_to(a, shape + (N,)).reshape(-1, N)[:, ia]
     b2 = np.broadcast_to(b, shape + (N,)).reshape(-1, N)[:, ib]
-    out = np.empty((a2.shape[0], N))
+    flat = out.reshape(-1, N)
     for lo in range(0, a2.shape[0], _CHUNK):
         hi = lo + _CHUNK
         outer = (a2[lo:hi, :, None] * b2[lo:hi, None, :]).reshape(-1, ia.size * ib.size)
-        out[lo:hi] = outer @ T
-    return out.reshape(shape + (N,))
+        flat[lo:hi, ko] = outer @ T
+    return out, reach
 
 
 class Multivector:
@@ -126,14 +141,17 @@ class Multivector:
     loosely than ``+`` and ``*``: parenthesise.
     """
 
-    __slots__ = ("v",)
+    __slots__ = ("v", "active")
     __array_priority__ = 100  # numpy scalars on the left defer to our operators
 
-    def __init__(self, coeffs):
+    def __init__(self, coeffs, active: bytes | None = None):
         v = np.asarray(coeffs, dtype=float)
         if v.shape[-1:] != (N,):
             raise ValueError(f"a G(4,1) multivector needs 32 coefficients, got shape {v.shape}")
         self.v = v
+        # Mask (32 bools as bytes) of the components that may be non-zero, when known from
+        # construction; products use it instead of scanning a large batch.
+        self.active = active
 
     # construction -------------------------------------------------------------------------
     @classmethod
@@ -149,7 +167,7 @@ class Multivector:
         x = np.asarray(x, dtype=float)
         v = np.zeros(x.shape[:-1] + (N,))
         v[..., 1:6] = x
-        return cls(v)
+        return cls(v, GRADE_MASK[1])
 
     @classmethod
     def stack(cls, items) -> Multivector:
@@ -168,7 +186,7 @@ class Multivector:
     def __getitem__(self, idx) -> Multivector:
         if not isinstance(idx, tuple):
             idx = (idx,)
-        return Multivector(self.v[idx + (slice(None),)])
+        return Multivector(self.v[idx + (slice(None),)], self.active)
 
     def __iter__(self):
         for i in range(len(self)):
@@ -202,7 +220,7 @@ class Multivector:
     __radd__ = __add__
 
     def __neg__(self) -> Multivector:
-        return Multivector(-self.v)
+        return Multivector(-self.v, self.active)
 
     def __sub__(self, other) -> Multivector:
         return self + (-other)
@@ -210,14 +228,17 @@ class Multivector:
     def __rsub__(self, other) -> Multivector:
         return (-self) + other
 
+    def _product(self, kind: str, other: Multivector) -> Multivector:
+        return Multivector(*product(kind, self.v, other.v, self.active, other.active))
+
     def __mul__(self, other) -> Multivector:
         o = self._coerce(other)
         if o is None:
-            return Multivector(self.v * other)
-        return Multivector(product("gp", self.v, o))
+            return Multivector(self.v * other, self.active)
+        return self._product("gp", other)
 
     def __rmul__(self, other) -> Multivector:
-        return Multivector(self.v * other)
+        return Multivector(self.v * other, self.active)
 
     def __truediv__(self, other) -> Multivector:
         if isinstance(other, Multivector):
@@ -228,8 +249,8 @@ class Multivector:
     def __xor__(self, other) -> Multivector:
         o = self._coerce(other)
         if o is None:
-            return Multivector(self.v * other)
-        return Multivector(product("op", self.v, o))
+            return Multivector(self.v * other, self.active)
+        return self._product("op", other)
 
     def __rxor__(self, other) -> Multivector:
         return Multivector(self.v * other)
@@ -237,21 +258,24 @@ class Multivector:
     def __or__(self, other) -> Multivector:
         o = self._coerce(other)
         if o is None:
-            return Multivector(self.v * other)  # contraction of a blade by a scalar
-        return Multivector(product("lc", self.v, o))
+            return Multivector(self.v * other, self.active)  # contraction by a scalar
+        return self._product("lc", other)
 
     def __invert__(self) -> Multivector:
         return self.reverse()
 
     # unary operations ---------------------------------------------------------------------
     def reverse(self) -> Multivector:
-        return Multivector(self.v * REVERSE_SIGN)
+        return Multivector(self.v * REVERSE_SIGN, self.active)
 
     def involute(self) -> Multivector:
-        return Multivector(self.v * INVOLUTION_SIGN)
+        return Multivector(self.v * INVOLUTION_SIGN, self.active)
 
     def grade(self, k: int) -> Multivector:
-        return Multivector(np.where(GRADE == k, self.v, 0.0))
+        mask = GRADE_MASK.get(k, bytes(N))
+        if self.active is not None:
+            mask = bytes(x & y for x, y in zip(mask, self.active, strict=True))
+        return Multivector(np.where(GRADE == k, self.v, 0.0), mask)
 
     def grades(self, tol: float = 1e-12) -> set[int]:
         """Grades with a coefficient above ``tol`` anywhere in the batch."""
@@ -315,8 +339,8 @@ class Multivector:
     def __repr__(self) -> str:
         if self.v.ndim > 1:
             return f"Multivector(batch shape {self.shape})"
-        terms = [f"{c:+.6g}{'' if n == '1' else '*' + n}" for c, n in zip(self.v, BLADE_NAMES)
-                 if abs(c) > 1e-12]
+        pairs = zip(self.v, BLADE_NAMES, strict=True)
+        terms = [f"{c:+.6g}{'' if n == '1' else '*' + n}" for c, n in pairs if abs(c) > 1e-12]
         return "Multivector(" + (" ".join(terms) if terms else "0") + ")"
 
 

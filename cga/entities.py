@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .algebra import E0_INF, N, Multivector, blade_index, e0, einf
+from .algebra import GRADE_MASK, Multivector, N, blade_index, e0, einf
 
 _E1, _E2, _E3, _EP, _EM = 1, 2, 3, 4, 5
 _E12, _E13, _E23 = blade_index("e12"), blade_index("e13"), blade_index("e23")
@@ -39,7 +39,7 @@ def up(x) -> Multivector:
     # einf = e- + e+, e0 = (e- - e+)/2
     v[..., _EP] = half_sq - 0.5
     v[..., _EM] = half_sq + 0.5
-    return Multivector(v)
+    return Multivector(v, GRADE_MASK[1])
 
 
 def point_weight(X: Multivector) -> np.ndarray:
@@ -79,9 +79,12 @@ def circle(a, b, c) -> Multivector:
 
 def sphere_ipns(center, radius) -> Multivector:
     """IPNS (dual) sphere s = up(c) - 1/2 r^2 einf (a vector; s^2 = r^2)."""
-    r = np.asarray(radius, dtype=float)
-    return up(center) - einf * (0.5 * r * r)[..., None] if r.ndim else \
-        up(center) - 0.5 * float(r) ** 2 * einf
+    S = up(center)
+    half_r2 = 0.5 * np.asarray(radius, dtype=float) ** 2
+    v = S.v.copy()
+    v[..., _EP] -= half_r2
+    v[..., _EM] -= half_r2
+    return Multivector(v, GRADE_MASK[1])
 
 
 def sphere(center, radius) -> Multivector:
@@ -129,8 +132,10 @@ def spheres_intersect(s1: Multivector, s2: Multivector) -> np.ndarray:
     a = Multivector(a.v / point_weight(a)[..., None])
     b = Multivector(b.v / point_weight(b)[..., None])
     sq = ((a ^ b) * (a ^ b)).scalar_part()
-    scale = np.maximum(1.0, np.abs(a.sq_norm() * b.sq_norm()))
-    return np.where(np.abs(sq) <= 1e-12 * scale, 0, np.sign(sq)).astype(int)
+    # Tangency is an exact zero in exact arithmetic; rounding is relative to the size of the
+    # coefficients (up(x) carries x^2/2), so the zero band scales with them.
+    size = np.abs(a.v[..., 1:6]).sum(axis=-1) * np.abs(b.v[..., 1:6]).sum(axis=-1)
+    return np.where(np.abs(sq) <= 1e-11 * size * size, 0, np.sign(sq)).astype(int)
 
 
 # ---- lines -----------------------------------------------------------------------------------

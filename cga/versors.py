@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .algebra import N, Multivector, blade_index, einf
+from .algebra import Multivector, N, blade_index, einf
 from .entities import _vec3, down, euclidean, up
 
 _E12, _E13, _E23 = blade_index("e12"), blade_index("e13"), blade_index("e23")
@@ -167,9 +167,20 @@ def apply_points(M: Multivector, x) -> np.ndarray:
     return np.einsum("...ij,...j->...i", H[..., :3, :3], x) + H[..., :3, 3]
 
 
-def apply_points_sandwich(M: Multivector, x) -> np.ndarray:
-    """General path: up(x), the full sandwich M X ~M, down (for comparison and checks)."""
-    return down(apply(M, up(x)))
+def apply_points_sandwich(M: Multivector, x, block: int = 2048) -> np.ndarray:
+    """General path: up(x), the full sandwich M X ~M of geometric products, down.
+
+    Evaluated in blocks of points so that the 32-coefficient temporaries stay in cache.
+    """
+    x = _vec3(x)
+    if M.v.ndim > 1:
+        return down(apply(M, up(x)))
+    flat = x.reshape(-1, 3)
+    out = np.empty_like(flat)
+    Mr = M.reverse()
+    for lo in range(0, flat.shape[0], block):
+        out[lo:lo + block] = down(M * up(flat[lo:lo + block]) * Mr)
+    return out.reshape(x.shape)
 
 
 def motor_to_pose2d(M: Multivector) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
