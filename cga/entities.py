@@ -264,8 +264,9 @@ def hough2d_from_points(a, b) -> tuple[np.ndarray, np.ndarray]:
     normal_angle = np.arctan2(d[..., 0], -d[..., 1])  # normal = direction turned by -90 deg
     n = np.stack([np.cos(normal_angle), np.sin(normal_angle)], axis=-1)
     rho = np.einsum("...i,...i->...", n, a)
-    theta = np.where(rho < 0, normal_angle + np.pi, normal_angle)
-    return np.mod(theta, 2 * np.pi), np.abs(rho)
+    theta = np.mod(np.where(rho < 0, normal_angle + np.pi, normal_angle), 2 * np.pi)
+    theta = np.where(theta >= 2 * np.pi, 0.0, theta)  # mod of a tiny negative rounds to 2 pi
+    return theta, np.abs(rho)
 
 
 def line_to_hough2d(L: Multivector) -> tuple[np.ndarray, np.ndarray]:
