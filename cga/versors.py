@@ -167,7 +167,7 @@ def apply_points(M: Multivector, x) -> np.ndarray:
     return np.einsum("...ij,...j->...i", H[..., :3, :3], x) + H[..., :3, 3]
 
 
-def apply_points_sandwich(M: Multivector, x, block: int = 2048) -> np.ndarray:
+def apply_points_sandwich(M: Multivector, x, block: int = 1024) -> np.ndarray:
     """General path: up(x), the full sandwich M X ~M of geometric products, down.
 
     Evaluated in blocks of points so that the 32-coefficient temporaries stay in cache.
