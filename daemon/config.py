@@ -1,0 +1,307 @@
+"""The daemon's YAML configuration: schema, validation, defaults.
+
+Validation is a small explicit walk over a schema of ``Spec`` nodes.  Every problem is reported
+as one line naming the key path (``devices.laser.url: ...``) and the daemon exits with 78
+(EX_CONFIG, sysexits.h), the code systemd shows as "configuration error".
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+import yaml
+
+EX_CONFIG = 78
+
+ROLES = ("laser", "odometry", "pantilt", "camera")
+# Driver models per role; the daemon's device factory maps each to a driver class.
+MODELS = {
+    "laser": ("lms2xx", "hokuyo", "cola", "carmen"),
+    "odometry": ("modbus-base", "carmen"),
+    "pantilt": ("dynamixel",),
+    "camera": ("oak", "sim-stereo"),
+}
+URL_SCHEMES = ("serial", "tcp", "sim", "file", "usb")
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class ConfigError(Exception):
+    """One configuration problem: ``path`` is the dotted key path, ``problem`` what is wrong."""
+
+    code = EX_CONFIG
+
+    def __init__(self, path: str, problem: str):
+        super().__init__(f"{path or '<top>'}: {problem}")
+        self.path = path
+        self.problem = problem
+
+
+@dataclass
+class Spec:
+    """One schema node.  ``kind``: str, int, float, bool, list, record (fixed keys), map (free
+    keys, each value ``values``), any.  ``check`` returns an error text or None."""
+
+    kind: str
+    required: bool = False
+    default: Any = None
+    choices: tuple | None = None
+    fields: dict[str, Spec] = field(default_factory=dict)
+    values: Spec | None = None
+    items: Spec | None = None
+    length: int | None = None
+    check: Callable[[Any], str | None] | None = None
+
+
+def _positive(v) -> str | None:
+    return None if v > 0 else f"must be > 0, got {v}"
+
+
+def _non_negative(v) -> str | None:
+    return None if v >= 0 else f"must be >= 0, got {v}"
+
+
+def _port(v) -> str | None:
+    return None if 0 <= v <= 65535 else f"must be a TCP port 0..65535, got {v}"
+
+
+def check_url(url: str) -> str | None:
+    """A device URL: ``serial:///dev/ttyUSB0?baudrate=38400``, ``tcp://host:port``,
+    ``sim://name``, ``file:///path/log.gz``, ``usb://`` (first device of the model)."""
+    parts = urlsplit(url)
+    if parts.scheme not in URL_SCHEMES:
+        return f"unknown scheme {parts.scheme!r} in {url!r} (one of {', '.join(URL_SCHEMES)})"
+    if parts.scheme in ("serial", "file") and not parts.path.strip("/"):
+        return f"no device path in {url!r}"
+    if parts.scheme == "tcp":
+        try:
+            port = parts.port
+        except ValueError:
+            return f"bad port in {url!r}"
+        if not parts.hostname or port is None:
+            return f"needs host and port, e.g. tcp://127.0.0.1:502, got {url!r}"
+    for key, value in parse_qsl(parts.query):
+        if key in ("baudrate", "unit", "id") and not value.isdigit():
+            return f"query {key}={value!r} must be an integer"
+    return None
+
+
+def _pose_spec() -> Spec:
+    f = Spec("float", default=0.0)
+    return Spec("record", fields={k: f for k in ("x", "y", "z", "roll", "pitch", "yaw")})
+
+
+def _vec3_spec(default=(0.0, 0.0, 0.0)) -> Spec:
+    return Spec("list", default=list(default), items=Spec("float"), length=3)
+
+
+DEVICE = Spec("record", fields={
+    "role": Spec("str", required=True, choices=ROLES),
+    "model": Spec("str", required=True),
+    "url": Spec("str", required=True, check=check_url),
+    "enabled": Spec("bool", default=True),
+    "queue": Spec("int", default=16, check=_positive),
+    "timeout": Spec("float", default=1.0, check=_positive),
+    # laser: the mount motor M_BL; camera: unused
+    "mount": _pose_spec(),
+    # pan-tilt: axis point P in the base frame, eye offset (P to left camera) in the head
+    # frame, or a hand-eye calibration file (``calib hand-eye`` YAML with head_T_cam)
+    "axis_point": _vec3_spec(),
+    "eye_offset": _vec3_spec(),
+    "hand_eye": Spec("str"),
+    "rate": Spec("float", default=10.0, check=_positive),
+    "params": Spec("map", default={}, values=Spec("any")),
+})
+
+SCHEMA = Spec("record", fields={
+    "log_level": Spec("str", default="info", choices=LOG_LEVELS),
+    "paths": Spec("record", default={}, fields={
+        "state_dir": Spec("str", default="/var/lib/cgamap"),
+        "runtime_dir": Spec("str", default="/run/cgamap"),
+        "socket": Spec("str", default="cgamapd.sock"),
+    }),
+    "server": Spec("record", default={}, fields={
+        "tcp": Spec("bool", default=False),
+        "tcp_host": Spec("str", default="127.0.0.1"),
+        "tcp_port": Spec("int", default=2950, check=_port),
+        "socket_mode": Spec("int", default=0o660),
+        "max_clients": Spec("int", default=16, check=_positive),
+    }),
+    "checkpoint": Spec("record", default={}, fields={
+        "interval": Spec("float", default=30.0, check=_positive),
+    }),
+    "supervisor": Spec("record", default={}, fields={
+        "backoff_initial": Spec("float", default=0.2, check=_positive),
+        "backoff_max": Spec("float", default=2.0, check=_positive),
+    }),
+    "devices": Spec("map", default={}, values=DEVICE),
+    "mapping": Spec("record", default={}, fields={
+        "map2d": Spec("bool", default=True),
+        "map3d": Spec("bool", default=True),
+        "rate3d": Spec("float", default=1.0, check=_positive),
+        "odometry": Spec("map", default={}, values=Spec("any")),
+        "params2d": Spec("map", default={}, values=Spec("any")),
+        "params3d": Spec("map", default={}, values=Spec("any")),
+        "lost_quality": Spec("float", default=0.2, check=_non_negative),
+        "lost_after": Spec("int", default=8, check=_positive),
+        "max_interp_gap": Spec("float", default=0.5, check=_positive),
+    }),
+    # sim-only: what the demo drives; ignored by the daemon itself
+    "sim": Spec("map", default={}, values=Spec("any")),
+})
+
+_TYPES: dict[str, tuple[type, ...]] = {
+    "str": (str,), "int": (int,), "float": (int, float), "bool": (bool,),
+    "list": (list,), "record": (dict,), "map": (dict,),
+}
+
+
+def _type_name(v: Any) -> str:
+    return {dict: "mapping", list: "list", str: "string", bool: "boolean", int: "integer",
+            float: "number", type(None): "null"}.get(type(v), type(v).__name__)
+
+
+def _validate(spec: Spec, value: Any, path: str) -> Any:
+    if spec.kind == "any":
+        return value
+    ok = _TYPES[spec.kind]
+    if not isinstance(value, ok) or (spec.kind in ("int", "float") and isinstance(value, bool)):
+        want = {"record": "mapping", "map": "mapping", "float": "number", "int": "integer",
+                "str": "string", "bool": "boolean (true/false)"}.get(spec.kind, spec.kind)
+        raise ConfigError(path, f"expected {want}, got {_type_name(value)} {value!r}"[:160])
+    if spec.kind == "float":
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(path, f"must be a finite number, got {value}")
+    if spec.choices is not None and value not in spec.choices:
+        raise ConfigError(path, f"{value!r} is not one of {', '.join(map(str, spec.choices))}")
+    if spec.kind == "list":
+        if spec.length is not None and len(value) != spec.length:
+            raise ConfigError(path, f"expected {spec.length} items, got {len(value)}")
+        value = [_validate(spec.items, v, f"{path}[{i}]") for i, v in enumerate(value)]
+    elif spec.kind == "record":
+        value = _validate_record(spec, value, path)
+    elif spec.kind == "map":
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ConfigError(path, f"key {k!r} must be a string")
+            out[k] = _validate(spec.values, v, f"{path}.{k}" if path else k)
+        value = out
+    if spec.check is not None:
+        problem = spec.check(value)
+        if problem:
+            raise ConfigError(path, problem)
+    return value
+
+
+def _validate_record(spec: Spec, value: dict, path: str) -> dict:
+    for k in value:
+        if k not in spec.fields:
+            where = f"{path}.{k}" if path else str(k)
+            raise ConfigError(where, f"unknown key (expected one of {', '.join(spec.fields)})")
+    out = {}
+    for k, sub in spec.fields.items():
+        where = f"{path}.{k}" if path else k
+        if k in value and value[k] is not None:
+            out[k] = _validate(sub, value[k], where)
+        elif k in value and sub.kind != "any" and not sub.required:
+            raise ConfigError(where, "is empty (remove the key or give a value)")
+        elif sub.required:
+            raise ConfigError(where, "missing required key")
+        elif sub.kind == "record":
+            out[k] = _validate(sub, dict(sub.default or {}), where)
+        else:
+            out[k] = _copy(sub.default)
+    return out
+
+
+def _copy(v):
+    return list(v) if isinstance(v, list) else dict(v) if isinstance(v, dict) else v
+
+
+def _check_devices(cfg: dict, base: Path) -> None:
+    """Cross-field checks: the model fits the role, calibration files exist and parse."""
+    for name, dev in cfg["devices"].items():
+        path = f"devices.{name}"
+        if dev["model"] not in MODELS[dev["role"]]:
+            raise ConfigError(f"{path}.model", f"{dev['model']!r} is not a {dev['role']} model "
+                              f"(one of {', '.join(MODELS[dev['role']])})")
+        scheme = urlsplit(dev["url"]).scheme
+        if dev["model"] == "carmen" and scheme != "file":
+            raise ConfigError(f"{path}.url", "a carmen log needs a file:// URL")
+        if dev["hand_eye"]:
+            he = Path(dev["hand_eye"])
+            he = he if he.is_absolute() else base / he
+            dev["hand_eye"] = str(he)
+            dev["head_T_cam"] = load_hand_eye(he, f"{path}.hand_eye")
+    roles = [d["role"] for d in cfg["devices"].values() if d["enabled"]]
+    for role in ("laser", "odometry", "pantilt", "camera"):
+        if roles.count(role) > 1:
+            raise ConfigError("devices", f"more than one enabled {role} device")
+
+
+def load_hand_eye(path: Path, key: str) -> list[list[float]]:
+    """``head_T_cam`` (4x4, rows) from a ``calib hand-eye`` YAML file."""
+    if not path.is_file():
+        raise ConfigError(key, f"calibration file {str(path)!r} not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, OSError) as exc:
+        raise ConfigError(key, f"cannot read {str(path)!r}: {str(exc).splitlines()[0]}") from None
+    m = data.get("head_T_cam") if isinstance(data, dict) else None
+    if isinstance(m, dict):  # some writers nest the matrix as {rows: .., data: ..}
+        m = m.get("data") or m.get("matrix")
+    try:
+        import numpy as np
+
+        arr = np.asarray(m, dtype=float).reshape(4, 4)
+        if not np.all(np.isfinite(arr)) or not np.allclose(arr[3], [0, 0, 0, 1]):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ConfigError(key, f"{str(path)!r} has no valid 4x4 head_T_cam") from None
+    return arr.tolist()
+
+
+def validate(raw: Any, base: Path | None = None) -> dict:
+    """Validated config with defaults filled in; raises ConfigError on the first problem."""
+    if raw is None:
+        raw = {}
+    cfg = _validate(SCHEMA, raw, "")
+    _check_devices(cfg, base or Path.cwd())
+    return cfg
+
+
+def load(path: str | os.PathLike) -> dict:
+    """Read and validate a YAML config file (ConfigError for every kind of problem)."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError("", f"cannot read {str(p)!r}: {exc.strerror}") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or "syntax error"
+        raise ConfigError("", f"YAML syntax error{where}: {problem}") from None
+    if raw is not None and not isinstance(raw, dict):
+        raise ConfigError("", f"top level must be a mapping, got {_type_name(raw)}")
+    cfg = validate(raw, p.resolve().parent)
+    cfg["_file"] = str(p.resolve())
+    return cfg
+
+
+def resolve_paths(cfg: dict) -> tuple[Path, Path]:
+    """(state dir, socket path): systemd's $STATE_DIRECTORY / $RUNTIME_DIRECTORY win."""
+    state = Path(os.environ.get("STATE_DIRECTORY", "").split(":")[0] or cfg["paths"]["state_dir"])
+    run = Path(os.environ.get("RUNTIME_DIRECTORY", "").split(":")[0]
+               or cfg["paths"]["runtime_dir"])
+    sock = Path(cfg["paths"]["socket"])
+    return state, sock if sock.is_absolute() else run / sock
