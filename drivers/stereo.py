@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from cgamap.cga import Multivector
 
 from .messages import PanTiltState
 from .stereo_calib import (
@@ -24,12 +25,20 @@ from .stereo_calib import (
     rectified_calibration,
     save_calibration,
 )
-from .stereo_points import depth_to_points, disparity_to_depth, disparity_to_points
+from .stereo_points import (
+    CameraMount,
+    camera_motor,
+    depth_to_points,
+    disparity_to_depth,
+    disparity_to_points,
+    points_to_global,
+)
 from .stereo_sgbm import SgbmParams, compute_disparity
 
 __all__ = [
     "StereoFrame", "StereoGrabber", "StereoCalibration", "SgbmParams", "load_calibration",
     "save_calibration", "rectified_calibration", "points_from_stereo_pair", "frame_points",
+    "frame_motor", "frame_points_global", "CameraMount",
     "nearest_pantilt", "pair_with_pantilt", "open_grabber", "BACKENDS",
 ]
 
@@ -105,6 +114,24 @@ def frame_points(frame: StereoFrame, max_depth: float = np.inf, stride: int = 1)
         return disparity_to_points(frame.disparity, frame.calib, max_depth=max_depth,
                                    stride=stride)
     return depth_to_points(frame.depth_image(), frame.calib, max_depth=max_depth, stride=stride)
+
+
+def frame_motor(frame: StereoFrame, mount: CameraMount | None = None,
+                pose: tuple[float, float, float] | Multivector | None = None) -> Multivector:
+    """M_GC of a frame: the camera chain from the robot pose (``pose``, else the frame's
+    ``pose_ref``, else the origin) and the frame's paired pan-tilt state (else level)."""
+    pose = pose if pose is not None else (frame.pose_ref or (0.0, 0.0, 0.0))
+    pan = frame.pantilt.pan if frame.pantilt is not None else 0.0
+    tilt = frame.pantilt.tilt if frame.pantilt is not None else 0.0
+    return camera_motor(pose, pan, tilt, mount)
+
+
+def frame_points_global(frame: StereoFrame, mount: CameraMount | None = None,
+                        pose: tuple[float, float, float] | Multivector | None = None,
+                        max_depth: float = np.inf, stride: int = 1) -> np.ndarray:
+    """(n, 3) points of a frame in the global frame: reprojection, then one motor for all."""
+    pts = frame_points(frame, max_depth=max_depth, stride=stride)
+    return points_to_global(pts, frame_motor(frame, mount, pose))
 
 
 def points_from_stereo_pair(left_img: np.ndarray, right_img: np.ndarray, calib,
