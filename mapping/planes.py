@@ -1,0 +1,468 @@
+"""Plane detection in point clouds: sequential RANSAC and the randomised 3D Hough transform.
+
+Both detectors end the same way (``_finish_plane``): inliers of a candidate, a least-squares
+refit (iterated), a connected-region check in the plane so that two coplanar but distant
+patches do not become one plane, and a ``DetectedPlane`` with its Hesse form, its point in the
+3D Hough space (theta, phi, rho) of DESIGN.md, its CGA plane, extent and corners (seed 000
+§IV-C and §VI; PRL §3.2, eqs. 10-12: a plane n.x = rho, a point X on it when X.P = 0).
+
+The Hough accumulator is a *ball* (Borrmann et al., 3D Research 2011): rings of constant
+theta, each cut into a number of phi cells proportional to sin(theta) so that every cell
+covers about the same area of the sphere of normals, and one such sphere per rho shell.
+Votes are randomised (Xu's RHT): each vote is the plane through three nearby points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from cgamap.cga import Multivector, hesse_to_hough3d, plane_from_hesse
+
+# ---- the plane record ----------------------------------------------------------------------
+
+
+@dataclass
+class DetectedPlane:
+    """A plane n.x = rho (rho >= 0) with its support."""
+
+    normal: np.ndarray
+    rho: float
+    inliers: int
+    rms: float
+    centroid: np.ndarray
+    extent: np.ndarray  # (k, 3) convex hull of the inliers, in the plane, counter-clockwise
+    corners: np.ndarray  # (4, 3) minimum-area rectangle around the inliers (the drawn quad)
+    area: float  # area of the extent polygon, m^2
+    inlier_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp),
+                                     repr=False)
+
+    @property
+    def hough(self) -> tuple[float, float, float]:
+        """(theta, phi, rho) with n = (sin t cos p, sin t sin p, cos t) (DESIGN.md)."""
+        t, p, r = hesse_to_hough3d(self.normal, self.rho)
+        return float(t), float(p), float(r)
+
+    def cga(self) -> Multivector:
+        """The OPNS CGA plane (dual of n + rho einf)."""
+        return plane_from_hesse(self.normal, self.rho)
+
+    def to_dict(self) -> dict:
+        t, p, r = self.hough
+        return {
+            "normal": [round(float(v), 6) for v in self.normal],
+            "rho": round(float(self.rho), 6),
+            "inliers": int(self.inliers),
+            "rms": round(float(self.rms), 6),
+            "hough": {"theta": round(t, 6), "phi": round(p, 6), "rho": round(r, 6)},
+            "centroid": [round(float(v), 5) for v in self.centroid],
+            "area": round(float(self.area), 5),
+            "corners": np.round(self.corners, 5).tolist(),
+            "extent": np.round(self.extent, 5).tolist(),
+        }
+
+
+# ---- geometry helpers ----------------------------------------------------------------------
+
+
+def canonical(normal: np.ndarray, rho: float) -> tuple[np.ndarray, float]:
+    """Unit normal and rho >= 0 (flip both when rho < 0)."""
+    n = np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    return (-n, -float(rho)) if rho < 0 else (n, float(rho))
+
+
+def fit_plane_lsq(points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Total least squares plane through points: (unit normal, rho, rms distance)."""
+    c = points.mean(axis=0)
+    d = points - c
+    w, v = np.linalg.eigh(d.T @ d)
+    n = v[:, 0]
+    n, rho = canonical(n, float(n @ c))
+    return n, rho, float(np.sqrt(max(w[0], 0.0) / len(points)))
+
+
+def plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane axes (u, v) with u horizontal where possible, so extents read naturally."""
+    n = np.asarray(normal, dtype=float)
+    u = np.cross([0.0, 0.0, 1.0], n)
+    if np.linalg.norm(u) < 1e-6:
+        u = np.cross(n, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def _extent(points: np.ndarray, n: np.ndarray, rho: float
+            ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Convex hull polygon, minimum-area rectangle corners (both in 3D) and hull area."""
+    u, v = plane_basis(n)
+    uv = np.stack([points @ u, points @ v], axis=1)
+    origin = n * rho
+    hull32 = cv2.convexHull(uv.astype(np.float32))
+    box = cv2.boxPoints(cv2.minAreaRect(hull32)).astype(float)
+    hull = hull32.reshape(-1, 2).astype(float)
+    # ensure counter-clockwise about n
+    if len(hull) >= 3:
+        area2 = np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
+        if area2 < 0:
+            hull = hull[::-1]
+    else:
+        area2 = 0.0
+
+    def lift(q):
+        return origin + q[:, :1] * u + q[:, 1:2] * v
+
+    return lift(hull), lift(box), abs(float(area2)) / 2
+
+
+def largest_region(points: np.ndarray, n: np.ndarray, cell: float) -> np.ndarray:
+    """Mask of the points in the largest 8-connected region of occupied cells in the plane.
+
+    Two coplanar patches more than about two cells apart fall into different regions.
+    """
+    u, v = plane_basis(n)
+    uv = np.stack([points @ u, points @ v], axis=1)
+    lo = uv.min(axis=0)
+    span = uv.max(axis=0) - lo
+    cell = max(cell, float(np.sqrt(span[0] * span[1] / 4e6)) if span.min() > 0 else cell)
+    ij = np.floor((uv - lo) / cell).astype(np.int64)
+    shape = ij.max(axis=0) + 1
+    grid = np.zeros((int(shape[0]), int(shape[1])), dtype=np.uint8)
+    grid[ij[:, 0], ij[:, 1]] = 1
+    count, labels = cv2.connectedComponents(grid, connectivity=8)
+    if count <= 2:
+        return np.ones(len(points), dtype=bool)
+    lab = labels[ij[:, 0], ij[:, 1]]
+    sizes = np.bincount(lab, minlength=count)
+    sizes[0] = 0
+    return lab == int(np.argmax(sizes))
+
+
+# ---- sampling ------------------------------------------------------------------------------
+
+
+class _VoxelIndex:
+    """Points sorted by voxel, for drawing index triples from one neighbourhood.
+
+    A triple is a random seed point and two partners from the seed's voxel run, so triples
+    come from one neighbourhood and hit one plane far more often than global triples.
+    """
+
+    def __init__(self, points: np.ndarray, radius: float):
+        key = np.floor(points / radius).astype(np.int64)
+        key -= key.min(axis=0)
+        dims = key.max(axis=0) + 1
+        flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+        self.order = np.argsort(flat)
+        sflat = flat[self.order]
+        # run start and end of every point's voxel, by the point's own index
+        new_run = np.empty(len(sflat), dtype=bool)
+        new_run[:1] = True
+        np.not_equal(sflat[1:], sflat[:-1], out=new_run[1:])
+        run_start = np.flatnonzero(new_run)
+        run_end = np.append(run_start[1:], len(sflat))
+        run = np.cumsum(new_run) - 1
+        self.start = np.empty(len(sflat), dtype=np.int64)
+        self.end = np.empty(len(sflat), dtype=np.int64)
+        self.start[self.order] = run_start[run]
+        self.end[self.order] = run_end[run]
+
+    def triples(self, k: int, rng: np.random.Generator, active: np.ndarray | None = None,
+                pool: np.ndarray | None = None) -> np.ndarray:
+        """k triples; with ``pool`` (indices of active points) and ``active`` (their mask) the
+        seed comes from the pool and triples with an inactive partner are dropped."""
+        seed = rng.integers(0, len(self.order), size=k) if pool is None else \
+            pool[rng.integers(0, len(pool), size=k)]
+        a = self.start[seed]
+        span = self.end[seed] - a
+        j1 = self.order[a + (rng.random(k) * span).astype(np.int64)]
+        j2 = self.order[a + (rng.random(k) * span).astype(np.int64)]
+        tri = np.stack([seed, j1, j2], axis=1)
+        if active is not None:
+            tri = tri[active[j1] & active[j2]]
+        return tri
+
+
+def _planes_from_triples(points: np.ndarray, tri: np.ndarray, min_area2: float
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (m, 3) and rho (m,) >= 0 of non-degenerate triples."""
+    p0, p1, p2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
+    nrm = np.cross(p1 - p0, p2 - p0)
+    ln = np.linalg.norm(nrm, axis=1)
+    ok = ln > min_area2
+    nrm = nrm[ok] / ln[ok, None]
+    rho = np.einsum("ij,ij->i", nrm, p0[ok])
+    sign = np.where(rho < 0, -1.0, 1.0)
+    return nrm * sign[:, None], rho * sign
+
+
+# ---- the common finishing step -------------------------------------------------------------
+
+
+@dataclass
+class PlaneParams:
+    threshold: float = 0.02  # inlier distance, m
+    range_noise: float = 0.0  # extra threshold per squared range (m^-1): stereo/RGB-D depth
+    min_inliers: int = 500
+    max_planes: int = 10
+    region_cell: float = 0.1  # connected-region grid cell, m (gaps of ~2 cells split)
+    refit_iterations: int = 3  # least-squares refits on a subsample of the candidate's inliers
+    final_passes: int = 2  # inliers -> largest region -> refit, over every point
+    neighbourhood: float = 0.0  # voxel for local triples; 0: auto from the cloud's size
+    max_points: int = 100_000  # detect on a regular decimation, then refit on every point
+
+
+class _Cloud:
+    """Finite points, their inlier thresholds, and which are still unclaimed."""
+
+    def __init__(self, pts: np.ndarray, prm: PlaneParams):
+        self.pts = pts
+        if prm.range_noise > 0:
+            self.thr = prm.threshold + prm.range_noise * np.einsum("ij,ij->i", pts, pts)
+        else:
+            self.thr = np.full(len(pts), prm.threshold)
+        self.active = np.ones(len(pts), dtype=bool)
+        self.remaining = np.arange(len(pts))
+
+    def claim(self, idx: np.ndarray) -> None:
+        self.active[idx] = False
+        self.remaining = np.flatnonzero(self.active)
+
+
+def _finish_plane(cl: _Cloud, n: np.ndarray, rho: float, prm: PlaneParams,
+                  min_inliers: int, probe_refit: bool = True
+                  ) -> tuple[DetectedPlane | None, np.ndarray]:
+    """Inliers of (n, rho) among the unclaimed points, refit, largest connected region,
+    refit again. Returns the plane (None when too small) and the indices it claims."""
+    pts = cl.pts
+    if probe_refit:
+        # refine on a subsample first (the fit converges long before it sees every point)
+        idx = cl.remaining
+        probe = idx if len(idx) <= 30000 else idx[:: len(idx) // 30000 + 1]
+        probe_pts, probe_thr = pts[probe], cl.thr[probe]
+        for _ in range(prm.refit_iterations):
+            near = probe_pts[np.abs(probe_pts @ n - rho) < probe_thr]
+            if len(near) < 3:
+                return None, idx[:0]
+            n, rho, _ = fit_plane_lsq(near)
+    # passes over every point (contiguous, cheaper than gathering the unclaimed ones); the
+    # second settles the inlier set of the refit plane
+    for _ in range(prm.final_passes):
+        members = np.flatnonzero((np.abs(pts @ n - rho) < cl.thr) & cl.active)
+        if len(members) < min_inliers:
+            return None, members
+        P = pts[members]
+        keep = largest_region(P, n, prm.region_cell)
+        members, P = members[keep], P[keep]
+        if len(members) < min_inliers:
+            return None, members
+        n, rho, rms = fit_plane_lsq(P)
+    proj = P - np.outer(P @ n - rho, n)  # measure the extent in the plane
+    extent, corners, area = _extent(proj, n, rho)
+    plane = DetectedPlane(normal=n, rho=rho, inliers=len(members), rms=rms,
+                          centroid=P.mean(axis=0), extent=extent, corners=corners, area=area,
+                          inlier_index=members)
+    return plane, members
+
+
+def _as_points(cloud: np.ndarray) -> np.ndarray:
+    pts = np.asarray(cloud, dtype=float).reshape(-1, 3)
+    return pts[np.all(np.isfinite(pts), axis=1)]
+
+
+def _auto_neighbourhood(pts: np.ndarray) -> float:
+    """A voxel of about 1/8 of the cloud's middle extent (robust spread of a subsample)."""
+    sub = pts[:: max(1, len(pts) // 5000)]
+    span = np.percentile(sub, 95, axis=0) - np.percentile(sub, 5, axis=0)
+    return float(max(np.sort(span)[1:].mean() / 8.0, 0.05))
+
+
+def _sequential(cloud: np.ndarray, prm: PlaneParams, propose) -> list[DetectedPlane]:
+    """The shared loop: ``propose(cl, voxels, min_count)`` gives a candidate (n, rho) or
+    None; each is finished on the decimated cloud, then every found plane is refit on all
+    points."""
+    pts = _as_points(cloud)
+    step = max(1, -(-len(pts) // prm.max_points))
+    work = pts[::step]
+    min_work = max(3, prm.min_inliers // step)
+    if len(work) < min_work:
+        return []
+    cl = _Cloud(work, prm)
+    voxels = _VoxelIndex(work, prm.neighbourhood or _auto_neighbourhood(work))
+    found: list[DetectedPlane] = []
+    misses = 0
+    while len(found) < prm.max_planes and len(cl.remaining) >= min_work and misses < 3:
+        cand = propose(cl, voxels, min_work)
+        if cand is None:
+            break
+        plane, claimed = _finish_plane(cl, cand[0], cand[1], prm, min_work)
+        if len(claimed) == 0:
+            break
+        cl.claim(claimed)  # a rejected small piece leaves too, so the next round looks elsewhere
+        if plane is None:
+            misses += 1
+            continue
+        misses = 0
+        found.append(plane)
+    if step == 1:
+        return sorted(found, key=lambda p: -p.inliers)
+    full = _Cloud(pts, prm)
+    planes = []
+    for p in sorted(found, key=lambda p: -p.inliers):
+        plane, claimed = _finish_plane(full, p.normal, p.rho, prm, prm.min_inliers,
+                                       probe_refit=False)
+        if plane is not None:
+            planes.append(plane)
+            full.claim(claimed)
+    return sorted(planes, key=lambda p: -p.inliers)
+
+
+# ---- sequential RANSAC ---------------------------------------------------------------------
+
+
+def ransac_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
+                  batch: int = 256, score_sample: int = 2000, max_hypotheses: int = 4096,
+                  confidence: float = 0.999, seed: int | None = 0) -> list[DetectedPlane]:
+    """Sequential RANSAC: hypotheses from local triples, scored ``batch`` at a time by one
+    matrix product on a random subsample, the best one refit on all unclaimed points.
+
+    ``inlier_index`` of each plane indexes the finite points of ``cloud`` in their order.
+    Returns planes largest first.
+    """
+    prm = params or PlaneParams()
+    rng = np.random.default_rng(seed)
+
+    def propose(cl: _Cloud, voxels: _VoxelIndex, min_count: int):
+        rem = cl.remaining
+        m = min(score_sample, len(rem))
+        pick = rem[rng.choice(len(rem), size=m, replace=False)]
+        sample32 = cl.pts[pick].astype(np.float32)
+        thr32 = cl.thr[pick].astype(np.float32)[:, None]
+        best, best_score, tried = None, -1, 0
+        while tried < max_hypotheses:
+            tri = voxels.triples(batch, rng, cl.active, rem)
+            normals, rhos = _planes_from_triples(cl.pts, tri, 1e-9)
+            tried += batch
+            if len(normals) == 0:
+                continue
+            # one (m, batch) product scores the whole batch
+            dist = sample32 @ normals.T.astype(np.float32)
+            dist -= rhos.astype(np.float32)
+            np.abs(dist, out=dist)
+            counts = (dist < thr32).sum(axis=0)
+            k = int(np.argmax(counts))
+            if counts[k] > best_score:
+                best, best_score = (normals[k], float(rhos[k])), int(counts[k])
+            # Local triples land on a plane of inlier ratio w with probability about w/2
+            # (seed on it, partners from its voxel), not w^3 as global triples would.
+            w = max(best_score / m, min_count / len(rem))
+            need = np.log(1 - confidence) / np.log(max(1 - w / 2, 1e-12))
+            if tried >= min(need, max_hypotheses):
+                break
+        # the best hypothesis cannot reach min_inliers on the remaining points: done
+        if best is None or best_score / m * len(rem) < 0.5 * min_count:
+            return None
+        return best
+
+    return _sequential(cloud, prm, propose)
+
+
+# ---- the 3D Hough transform with a ball accumulator ----------------------------------------
+
+
+class BallAccumulator:
+    """Cells of (about) equal area on the sphere of normals, one sphere per rho shell.
+
+    Ring i covers theta in [i dt, (i+1) dt); it has max(1, round(2 pi sin(theta_i) / dt))
+    phi cells, theta_i the ring's centre. Cell ids are laid out ring after ring, then by shell.
+    """
+
+    def __init__(self, theta_step: float, rho_step: float, rho_max: float):
+        self.theta_step = float(theta_step)
+        self.rho_step = float(rho_step)
+        self.n_rings = int(np.ceil(np.pi / theta_step))
+        centres = (np.arange(self.n_rings) + 0.5) * np.pi / self.n_rings
+        self.ring_theta = centres
+        self.ring_cells = np.maximum(1, np.round(2 * np.pi * np.sin(centres) / theta_step)
+                                     ).astype(np.int64)
+        self.ring_start = np.concatenate([[0], np.cumsum(self.ring_cells)[:-1]])
+        self.cells_per_shell = int(self.ring_cells.sum())
+        self.n_shells = int(np.ceil(rho_max / rho_step)) + 1
+        self.counts = np.zeros(self.cells_per_shell * self.n_shells, dtype=np.int64)
+
+    def cell_of(self, theta: np.ndarray, phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
+        ring = np.minimum((theta / np.pi * self.n_rings).astype(np.int64), self.n_rings - 1)
+        nphi = self.ring_cells[ring]
+        j = np.floor((phi + np.pi) / (2 * np.pi) * nphi).astype(np.int64) % nphi
+        shell = np.minimum((rho / self.rho_step).astype(np.int64), self.n_shells - 1)
+        return shell * self.cells_per_shell + self.ring_start[ring] + j
+
+    def cell_centre(self, cell: int) -> tuple[float, float, float]:
+        shell, c = divmod(int(cell), self.cells_per_shell)
+        ring = int(np.searchsorted(self.ring_start, c, side="right") - 1)
+        j = c - self.ring_start[ring]
+        phi = -np.pi + (j + 0.5) * 2 * np.pi / self.ring_cells[ring]
+        return float(self.ring_theta[ring]), float(phi), (shell + 0.5) * self.rho_step
+
+    def vote(self, cells: np.ndarray) -> None:
+        self.counts += np.bincount(cells, minlength=len(self.counts))
+
+    def reset(self) -> None:
+        self.counts[:] = 0
+
+
+def hough_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
+                 theta_step: float = np.radians(3.0), rho_step: float | None = None,
+                 votes_per_round: int = 6000, min_votes: int = 20,
+                 seed: int | None = 0) -> list[DetectedPlane]:
+    """Randomised 3D Hough transform on a ball accumulator, then peak refit.
+
+    Each round: ``votes_per_round`` planes through local point triples vote; the fullest cell
+    is the peak; the median of the votes that fell into it is the candidate, which is refit
+    on its inliers (see ``_finish_plane``); its points leave the cloud; the accumulator is
+    cleared (Borrmann et al.'s RHT resets after each detected plane).
+    """
+    prm = params or PlaneParams()
+    rng = np.random.default_rng(seed)
+    rho_step = rho_step or max(2.5 * prm.threshold, 0.02)
+    acc: list[BallAccumulator] = []
+
+    def propose(cl: _Cloud, voxels: _VoxelIndex, min_count: int):
+        if not acc:
+            rho_max = float(np.sqrt(np.einsum("ij,ij->i", cl.pts, cl.pts).max()))
+            acc.append(BallAccumulator(theta_step, rho_step, rho_max))
+        ball = acc[0]
+        tri = voxels.triples(votes_per_round, rng, cl.active, cl.remaining)
+        normals, rhos = _planes_from_triples(cl.pts, tri, 1e-9)
+        if len(normals) == 0:
+            return None
+        theta, phi, rho = hesse_to_hough3d(normals, rhos)
+        cells = ball.cell_of(theta, phi, rho)
+        ball.reset()
+        ball.vote(cells)
+        peak = int(np.argmax(ball.counts))
+        if ball.counts[peak] < min_votes:
+            return None
+        sel = cells == peak
+        # the median of the peak's votes is a better candidate than the cell centre
+        n = np.median(normals[sel], axis=0)
+        return n / np.linalg.norm(n), float(np.median(rhos[sel]))
+
+    return _sequential(cloud, prm, propose)
+
+
+def detect_planes(cloud: np.ndarray, method: str = "ransac",
+                  params: PlaneParams | None = None, **kw) -> list[DetectedPlane]:
+    """Planes of a cloud ((n, 3) or organised (H, W, 3) with NaN), largest first."""
+    if method == "ransac":
+        return ransac_planes(cloud, params, **kw)
+    if method == "hough":
+        return hough_planes(cloud, params, **kw)
+    raise ValueError(f"unknown plane method {method!r} (ransac, hough)")
+
+
+def normal_angle_deg(n1: np.ndarray, n2: np.ndarray) -> float:
+    """Angle between two plane normals in degrees, orientation ignored."""
+    c = abs(float(np.dot(n1, n2)) / (np.linalg.norm(n1) * np.linalg.norm(n2)))
+    return float(np.degrees(np.arccos(min(1.0, c))))
