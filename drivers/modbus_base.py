@@ -1,0 +1,424 @@
+"""Differential-drive base whose motor controller speaks Modbus (TCP or RTU), via pymodbus.
+
+The driver yields what the controller measures, :class:`~cgamap.drivers.messages.WheelTicks`
+(unwrapped encoder counts, wheel speeds, status word, e-stop bit); ``mapping.odometry`` turns
+ticks into poses.  The register map is configuration (:class:`RegisterMap`); the default map,
+served by the twin ``cgamap sim-device modbus-base``, is:
+
+=====================  =====  =====  ======  ==========  ===============================
+item                   table  addr   words   signed      scaling
+=====================  =====  =====  ======  ==========  ===============================
+left encoder count     input  0      2 (32)  yes         ticks (wraps at 2^32)
+right encoder count    input  2      2 (32)  yes         ticks
+left wheel speed       input  4      2 (32)  yes         0.001 rad/s per count (mrad/s)
+right wheel speed      input  6      2 (32)  yes         0.001 rad/s per count
+status word            input  8      1 (16)  no          bit 0 = e-stop pressed
+left speed set-point   hold.  0      2 (32)  yes         0.001 rad/s per count
+right speed set-point  hold.  2      2 (32)  yes         0.001 rad/s per count
+=====================  =====  =====  ======  ==========  ===============================
+
+32-bit values are big-endian words (high word first, the Modbus convention) unless a field says
+``word_order: little``.  Encoder counters wrap: the driver unwraps the difference between two
+reads modulo 2^bits (so the base must not move more than half the counter range between two
+polls: 2^31 ticks at 32 bits, 32768 at 16 bits).
+
+URLs: ``tcp://host:port`` (Modbus TCP), ``rtu+tcp://host:port`` (RTU framing over TCP),
+``serial:///dev/ttyUSB0`` or a plain path (RTU on a serial port or pty); query options
+``unit=`` / ``device_id=`` (default 1), ``baudrate=`` / ``baud=`` (default 115200).
+
+Polling runs on absolute deadlines ``t0 + k / rate``: a slow read delays one sample, not all the
+ones after it; slots missed while a read overran are skipped and counted (``dropped``).  A
+missing or late reply is a counted ``timeout`` after at most ``timeout_s``; the driver then waits
+one more timeout and drains the input, so a late reply is never taken for the next one.
+Exception responses count as ``device``, a lost connection as ``disconnects`` (reconnected on
+the next poll).  Writing wheel-speed set-points needs ``allow_setpoints: true`` (off by default).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+from .messages import ErrorCounters, WheelTicks
+
+log = logging.getLogger(__name__)
+
+
+# -- register coding (pure, unit-tested) ------------------------------------------------------
+
+def decode_registers(regs: Sequence[int], signed: bool = True, word_order: str = "big") -> int:
+    """Integer from 16-bit registers; ``word_order`` "big" = most significant word first."""
+    words = list(regs) if word_order == "big" else list(regs)[::-1]
+    value = 0
+    for w in words:
+        value = (value << 16) | (int(w) & 0xFFFF)
+    bits = 16 * len(words)
+    if signed and value >= 1 << (bits - 1):
+        value -= 1 << bits
+    return value
+
+
+def encode_registers(value: int, words: int, word_order: str = "big") -> list[int]:
+    """16-bit registers of an integer (two's complement when negative), ``words`` long."""
+    bits = 16 * words
+    v = int(value) & ((1 << bits) - 1)
+    regs = [(v >> (16 * (words - 1 - i))) & 0xFFFF for i in range(words)]
+    return regs if word_order == "big" else regs[::-1]
+
+
+def unwrap_delta(raw_now: int, raw_prev: int, bits: int) -> int:
+    """Signed change of a wrapping counter: the difference modulo 2^bits in [-2^(b-1), 2^(b-1))."""
+    half = 1 << (bits - 1)
+    return ((raw_now - raw_prev + half) % (1 << bits)) - half
+
+
+@dataclass(frozen=True)
+class RegisterField:
+    """One value in the controller's register space."""
+
+    address: int
+    words: int = 2                 # 1 = 16-bit, 2 = 32-bit
+    signed: bool = True
+    word_order: str = "big"        # "big": high word first; "little": low word first
+    scale: float = 1.0             # physical value = raw * scale
+    table: str = "input"           # "input" (FC 4) or "holding" (FC 3 / FC 16)
+
+    def __post_init__(self) -> None:
+        if self.words not in (1, 2, 4):
+            raise ValueError(f"register field at {self.address}: words must be 1, 2 or 4")
+        if self.word_order not in ("big", "little"):
+            raise ValueError(f"register field at {self.address}: word_order big or little")
+        if self.table not in ("input", "holding"):
+            raise ValueError(f"register field at {self.address}: table input or holding")
+
+    @property
+    def bits(self) -> int:
+        return 16 * self.words
+
+    def raw(self, block: Sequence[int], block_start: int) -> int:
+        i = self.address - block_start
+        return decode_registers(block[i:i + self.words], self.signed, self.word_order)
+
+    def encode(self, physical: float) -> list[int]:
+        raw = round(physical / self.scale)
+        lo = -(1 << (self.bits - 1)) if self.signed else 0
+        hi = (1 << (self.bits - 1)) - 1 if self.signed else (1 << self.bits) - 1
+        if not lo <= raw <= hi:
+            raise ValueError(f"register {self.address}: {physical} does not fit {self.bits} bits")
+        return encode_registers(raw, self.words, self.word_order)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | RegisterField) -> RegisterField:
+        if isinstance(d, RegisterField):
+            return d
+        known = {f.name for f in fields(cls)}
+        bad = set(d) - known
+        if bad:
+            raise ValueError(f"register field: unknown keys {sorted(bad)}")
+        return cls(**d)
+
+
+_READ_FIELDS = ("left_ticks", "right_ticks", "left_speed", "right_speed", "status")
+
+
+@dataclass(frozen=True)
+class RegisterMap:
+    """Where the controller keeps each item (see the module docstring for the default)."""
+
+    left_ticks: RegisterField = RegisterField(0)
+    right_ticks: RegisterField = RegisterField(2)
+    left_speed: RegisterField | None = RegisterField(4, scale=0.001)
+    right_speed: RegisterField | None = RegisterField(6, scale=0.001)
+    status: RegisterField | None = RegisterField(8, words=1, signed=False)
+    estop_bit: int | None = 0
+    left_setpoint: RegisterField | None = RegisterField(0, table="holding", scale=0.001)
+    right_setpoint: RegisterField | None = RegisterField(2, table="holding", scale=0.001)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> RegisterMap:
+        """Default map with the given items replaced (``None`` drops an optional item)."""
+        if not d:
+            return cls()
+        known = {f.name for f in fields(cls)}
+        bad = set(d) - known
+        if bad:
+            raise ValueError(f"register map: unknown items {sorted(bad)}")
+        kw = {k: (v if k == "estop_bit" or v is None else RegisterField.from_dict(v))
+              for k, v in d.items()}
+        return replace(cls(), **kw)
+
+    def read_blocks(self) -> list[tuple[str, int, int]]:
+        """(table, start, count) spans covering the read items: one request per table."""
+        spans: dict[str, tuple[int, int]] = {}
+        for name in _READ_FIELDS:
+            f = getattr(self, name)
+            if f is None:
+                continue
+            lo, hi = spans.get(f.table, (f.address, f.address + f.words))
+            spans[f.table] = (min(lo, f.address), max(hi, f.address + f.words))
+        return [(t, lo, hi - lo) for t, (lo, hi) in sorted(spans.items())]
+
+
+@dataclass
+class ModbusBaseConfig:
+    """Driver configuration; geometry is carried here for the caller (mapping.odometry)."""
+
+    url: str = "tcp://127.0.0.1:502"
+    device_id: int | None = None       # None: from the URL (unit=), else 1
+    rate_hz: float = 50.0
+    timeout_s: float = 0.1
+    baudrate: int | None = None        # None: from the URL, else 115200
+    registers: RegisterMap = field(default_factory=RegisterMap)
+    wheel_radius: float = 0.05
+    track_width: float = 0.30
+    ticks_per_rev: float = 4096.0
+    left_sign: int = 1
+    right_sign: int = 1
+    allow_setpoints: bool = False
+    max_wheel_speed: float = 30.0      # rad/s: set-points beyond this are refused
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModbusBaseConfig:
+        """From a config mapping; accepts ``rate`` for rate_hz, ``track`` for track_width and
+        a ``params`` sub-mapping (as in config/robot.yaml)."""
+        d = dict(d)
+        d.update(d.pop("params", None) or {})
+        alias = {"rate": "rate_hz", "track": "track_width", "timeout": "timeout_s"}
+        d = {alias.get(k, k): v for k, v in d.items()}
+        known = {f.name for f in fields(cls)}
+        kw = {k: v for k, v in d.items() if k in known}
+        if "registers" in kw:
+            kw["registers"] = RegisterMap.from_dict(kw["registers"])
+        return cls(**kw)
+
+
+class ModbusBaseError(Exception):
+    """The base could not be opened or a request was refused before sending."""
+
+
+def _parse_url(url: str) -> tuple[str, str, int | None, dict[str, str]]:
+    """(kind, host or path, port, options) with kind tcp, rtu+tcp or rtu."""
+    parts = urlsplit(url)
+    opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    if parts.scheme in ("tcp", "modbus+tcp", "rtu+tcp", "socket"):
+        if not parts.hostname or not parts.port:
+            raise ModbusBaseError(f"{url}: expected {parts.scheme}://host:port")
+        kind = "tcp" if parts.scheme in ("tcp", "modbus+tcp") else "rtu+tcp"
+        return kind, parts.hostname, parts.port, opts
+    if parts.scheme in ("serial", "rtu", ""):
+        path = parts.path if parts.scheme else url.split("?")[0]
+        if not path:
+            raise ModbusBaseError(f"{url}: no serial device path")
+        return "rtu", path, None, opts
+    raise ModbusBaseError(f"{url}: unsupported scheme {parts.scheme!r} "
+                          "(tcp://, rtu+tcp://, serial:// or a device path)")
+
+
+class ModbusBase:
+    """Poll a Modbus motor controller for wheel encoder counts.
+
+    ``client`` may be injected (any object with pymodbus's sync client methods) for tests.
+    """
+
+    def __init__(self, config: ModbusBaseConfig, client: Any | None = None) -> None:
+        self.config = config
+        self.errors = ErrorCounters()
+        self._client = client
+        self._injected = client is not None
+        kind, where, port, opts = _parse_url(config.url)
+        self._kind, self._where, self._port = kind, where, port
+        self.device_id = int(config.device_id if config.device_id is not None
+                             else opts.get("unit", opts.get("device_id", 1)))
+        self.baudrate = int(config.baudrate if config.baudrate is not None
+                            else opts.get("baudrate", opts.get("baud", 115200)))
+        self._prev_raw: dict[str, int] = {}
+        self._count: dict[str, int] = {}
+        self._seq = 0
+        self._connected = False
+
+    # -- connection ---------------------------------------------------------------------
+    def _make_client(self) -> Any:
+        from pymodbus import FramerType
+        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+        # pymodbus logs every failed transaction at ERROR; the driver counts them instead.
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        t = self.config.timeout_s
+        if self._kind == "tcp":
+            return ModbusTcpClient(self._where, port=self._port, timeout=t, retries=0)
+        if self._kind == "rtu+tcp":
+            return ModbusSerialClient(f"socket://{self._where}:{self._port}",
+                                      framer=FramerType.RTU, timeout=t, retries=0)
+        return ModbusSerialClient(self._where, framer=FramerType.RTU, baudrate=self.baudrate,
+                                  timeout=t, retries=0)
+
+    def open(self) -> ModbusBase:
+        """Connect; raises :class:`ModbusBaseError` (one line) when the device is not there."""
+        if self._client is None:
+            self._client = self._make_client()
+        if not self._client.connect():
+            raise ModbusBaseError(f"{self.config.url}: cannot connect")
+        self._connected = True
+        return self
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+        self._connected = False
+
+    def __enter__(self) -> ModbusBase:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _drain(self) -> None:
+        """After a timeout: wait one more timeout, then drop whatever arrived (late replies)."""
+        time.sleep(self.config.timeout_s)
+        sock = getattr(self._client, "socket", None)
+        if sock is None:
+            return
+        try:
+            if hasattr(sock, "reset_input_buffer"):        # pyserial port
+                sock.reset_input_buffer()
+            else:                                           # TCP socket
+                while select.select([sock], [], [], 0)[0]:
+                    if not sock.recv(4096):
+                        break
+        except OSError:
+            pass
+
+    # -- transactions -------------------------------------------------------------------
+    def _request(self, fn: str, *args: Any, **kw: Any) -> Any | None:
+        """One Modbus transaction; None (and a counted error) if it failed."""
+        from pymodbus.exceptions import ConnectionException, ModbusIOException
+
+        try:
+            if not self._connected:
+                if not self._client.connect():
+                    raise ConnectionException("reconnect failed")
+                self._connected = True
+            rr = getattr(self._client, fn)(*args, device_id=self.device_id, **kw)
+        except ConnectionException as exc:
+            self.errors.disconnects += 1
+            log.warning("%s: connection lost (%s)", self.config.url, exc)
+            self._client.close()
+            self._connected = False
+            return None
+        except ModbusIOException as exc:
+            self.errors.timeout += 1
+            log.info("%s: no reply (%s)", self.config.url, exc)
+            self._drain()
+            return None
+        except OSError as exc:  # pty closed, socket reset
+            self.errors.disconnects += 1
+            log.warning("%s: transport error (%s)", self.config.url, exc)
+            self._client.close()
+            self._connected = False
+            return None
+        if rr.isError():
+            code = getattr(rr, "exception_code", None)
+            if code is None:  # some pymodbus paths return an error object for timeouts
+                self.errors.timeout += 1
+                self._drain()
+            else:
+                self.errors.device += 1
+                log.info("%s: exception response %s", self.config.url, code)
+            return None
+        return rr
+
+    def read(self) -> WheelTicks | None:
+        """Read the controller once: a WheelTicks, or None after a counted error."""
+        regmap = self.config.registers
+        blocks: dict[str, tuple[int, list[int]]] = {}
+        for table, start, count in regmap.read_blocks():
+            fn = "read_input_registers" if table == "input" else "read_holding_registers"
+            rr = self._request(fn, start, count=count)
+            if rr is None:
+                return None
+            if len(rr.registers) < count:
+                self.errors.framing += 1
+                return None
+            blocks[table] = (start, list(rr.registers))
+        stamp = time.monotonic_ns()
+
+        def value(name: str) -> int | None:
+            f = getattr(regmap, name)
+            if f is None:
+                return None
+            start, regs = blocks[f.table]
+            return f.raw(regs, start)
+
+        for name in ("left_ticks", "right_ticks"):
+            raw = value(name)
+            f = getattr(regmap, name)
+            if name not in self._prev_raw:
+                self._count[name] = raw
+            else:
+                self._count[name] += unwrap_delta(raw, self._prev_raw[name], f.bits)
+            self._prev_raw[name] = raw
+        speeds = [None if getattr(regmap, n) is None else value(n) * getattr(regmap, n).scale
+                  for n in ("left_speed", "right_speed")]
+        status = value("status")
+        estop = bool(status is not None and regmap.estop_bit is not None
+                     and status >> regmap.estop_bit & 1)
+        self._seq += 1
+        return WheelTicks(seq=self._seq, stamp_ns=stamp, left=self._count["left_ticks"],
+                          right=self._count["right_ticks"], left_speed=speeds[0],
+                          right_speed=speeds[1], status=status, estop=estop,
+                          errors=self.errors.as_dict())
+
+    def poll(self, count: int | None = None, stop: Any | None = None) -> Iterator[WheelTicks]:
+        """Read at ``rate_hz`` on absolute deadlines; yields each successful read.
+
+        ``count`` limits the number of messages; ``stop`` (a threading.Event) ends the loop.
+        """
+        period = 1.0 / self.config.rate_hz
+        t0 = time.monotonic()
+        k = 0
+        got = 0
+        while count is None or got < count:
+            if stop is not None and stop.is_set():
+                return
+            msg = self.read()
+            if msg is not None:
+                got += 1
+                yield msg
+            k += 1
+            now = time.monotonic()
+            late = math.floor((now - t0) / period) - k + 1
+            if late > 0:                      # the read overran whole slots: skip them
+                self.errors.dropped += late
+                k += late
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                if stop is not None:
+                    stop.wait(delay)
+                else:
+                    time.sleep(delay)
+
+    # -- set-points ---------------------------------------------------------------------
+    def set_wheel_speeds(self, left: float, right: float) -> bool:
+        """Write wheel-speed set-points (rad/s).  Refused (raises, nothing sent) unless
+        ``allow_setpoints`` is on, the map has set-point registers and the speeds are within
+        ``max_wheel_speed``; returns False if the write failed on the wire (counted)."""
+        cfg, regmap = self.config, self.config.registers
+        if not cfg.allow_setpoints:
+            raise ModbusBaseError("wheel speed set-points are disabled (allow_setpoints: false)")
+        if regmap.left_setpoint is None or regmap.right_setpoint is None:
+            raise ModbusBaseError("register map has no set-point registers")
+        for v in (left, right):
+            if not (math.isfinite(v) and abs(v) <= cfg.max_wheel_speed):
+                raise ModbusBaseError(f"wheel speed {v} rad/s beyond +-{cfg.max_wheel_speed}")
+        lf, rf = regmap.left_setpoint, regmap.right_setpoint
+        if rf.address == lf.address + lf.words:  # one request for both, so they change together
+            return self._request("write_registers", lf.address,
+                                 lf.encode(left) + rf.encode(right)) is not None
+        return (self._request("write_registers", lf.address, lf.encode(left)) is not None
+                and self._request("write_registers", rf.address, rf.encode(right)) is not None)

@@ -1,0 +1,266 @@
+"""Modbus differential base: register coding, encoder wrap, and the real pymodbus client
+against the twin (TCP and RTU over a pty): scripted drives, faults, set-point guard."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from cgamap.drivers.modbus_base import (
+    ModbusBase,
+    ModbusBaseConfig,
+    ModbusBaseError,
+    RegisterField,
+    RegisterMap,
+    decode_registers,
+    encode_registers,
+    unwrap_delta,
+)
+from cgamap.drivers.sim.modbus_base import (
+    BaseTwinConfig,
+    ModbusBaseTwin,
+    circle_script,
+    square_script,
+)
+from cgamap.mapping.odometry import WheelGeometry, integrate_increments, ticks_to_increment
+from hypothesis import given
+from hypothesis import strategies as st
+
+R, B, TPR = 0.05, 0.30, 4096
+
+
+# -- register coding ------------------------------------------------------------------------
+
+def test_word_order_big_and_little():
+    assert decode_registers([0x0001, 0x0002], signed=False, word_order="big") == 0x00010002
+    assert decode_registers([0x0001, 0x0002], signed=False, word_order="little") == 0x00020001
+    assert decode_registers([0xFFFF, 0xFFFE], signed=True, word_order="big") == -2
+    assert decode_registers([0xFFFE, 0xFFFF], signed=True, word_order="little") == -2
+    assert decode_registers([0x8000], signed=True) == -32768
+    assert decode_registers([0x8000], signed=False) == 32768
+    assert encode_registers(-2, 2, "big") == [0xFFFF, 0xFFFE]
+    assert encode_registers(-2, 2, "little") == [0xFFFE, 0xFFFF]
+    assert encode_registers(0x12345678, 2, "big") == [0x1234, 0x5678]
+
+
+@given(st.integers(-(2**31), 2**31 - 1), st.sampled_from(["big", "little"]))
+def test_word_order_round_trip(v, order):
+    assert decode_registers(encode_registers(v, 2, order), True, order) == v
+
+
+def test_pymodbus_agrees_on_big_word_order():
+    from pymodbus.client import ModbusTcpClient
+
+    regs = ModbusTcpClient.convert_to_registers([-123456], ModbusTcpClient.DATATYPE.INT32)
+    assert list(regs) == encode_registers(-123456, 2, "big")
+
+
+@pytest.mark.parametrize("bits", [16, 32])
+def test_encoder_wrap_unwrap(bits):
+    m = 1 << bits
+    assert unwrap_delta(5, m - 5, bits) == 10          # forward across the wrap
+    assert unwrap_delta(m - 5, 5, bits) == -10         # backward across it
+    assert unwrap_delta(100, 40, bits) == 60
+    # as signed registers: +max -> -max is a step of +1
+    assert unwrap_delta(-(m // 2), m // 2 - 1, bits) == 1
+
+
+@given(st.lists(st.integers(-20000, 20000), min_size=1, max_size=50), st.integers(0, 65535))
+def test_unwrap_recovers_a_16bit_counter(steps, start):
+    true = start + np.cumsum(steps)
+    raw = [int(v) % 65536 for v in [start, *true]]
+    total = sum(unwrap_delta(raw[i + 1], raw[i], 16) for i in range(len(steps)))
+    assert total == int(true[-1] - start)
+
+
+def test_register_map_blocks_and_config():
+    m = RegisterMap()
+    assert m.read_blocks() == [("input", 0, 9)]
+    m2 = RegisterMap.from_dict({"status": None, "right_ticks": {"address": 10, "words": 1}})
+    assert m2.read_blocks() == [("input", 0, 11)]
+    with pytest.raises(ValueError, match="unknown"):
+        RegisterMap.from_dict({"left_tics": {"address": 0}})
+    with pytest.raises(ValueError, match="word_order"):
+        RegisterField(0, word_order="middle")
+    cfg = ModbusBaseConfig.from_dict({"url": "tcp://h:1", "rate": 20.0,
+                                      "params": {"wheel_radius": 0.075, "track": 0.4}})
+    assert (cfg.rate_hz, cfg.wheel_radius, cfg.track_width) == (20.0, 0.075, 0.4)
+    assert not cfg.allow_setpoints
+
+
+def test_url_options():
+    b = ModbusBase(ModbusBaseConfig(url="tcp://10.0.0.2:502?unit=7"))
+    assert b.device_id == 7
+    b = ModbusBase(ModbusBaseConfig(url="serial:///dev/ttyUSB0?baudrate=57600"))
+    assert b.baudrate == 57600
+    with pytest.raises(ModbusBaseError, match="unsupported scheme"):
+        ModbusBase(ModbusBaseConfig(url="http://x"))
+
+
+class FakeClient:
+    """Injected client: serves a list of register blocks in turn."""
+
+    def __init__(self, blocks):
+        self.blocks = list(blocks)
+
+    def connect(self):
+        return True
+
+    def close(self):
+        pass
+
+    def read_input_registers(self, addr, count, device_id):
+        regs = self.blocks.pop(0)
+
+        class R:
+            registers = regs
+
+            @staticmethod
+            def isError():
+                return False
+
+        return R
+
+
+def test_driver_unwraps_16bit_little_endian_map_from_fake_client():
+    regmap = RegisterMap(left_ticks=RegisterField(0, words=1, signed=False),
+                         right_ticks=RegisterField(1, words=2, word_order="little"),
+                         left_speed=None, right_speed=None, status=RegisterField(3, words=1),
+                         estop_bit=2)
+    blocks = [[65530, *encode_registers(-3, 2, "little"), 0],
+              [4, *encode_registers(7, 2, "little"), 4]]
+    drv = ModbusBase(ModbusBaseConfig(url="tcp://fake:1", registers=regmap),
+                     client=FakeClient(blocks)).open()
+    a, b = drv.read(), drv.read()
+    assert (a.left, a.right, a.estop) == (65530, -3, False)
+    assert (b.left - a.left, b.right - a.right, b.estop) == (10, 10, True)
+
+
+# -- against the twin -----------------------------------------------------------------------
+
+@pytest.fixture
+def twin_factory():
+    twins = []
+
+    def make(rtu=False, **kw):
+        tw = ModbusBaseTwin(BaseTwinConfig(wheel_radius=R, track_width=B, ticks_per_rev=TPR, **kw))
+        tw.start(rtu=rtu)
+        twins.append(tw)
+        return tw
+
+    yield make
+    for tw in twins:
+        tw.stop()
+
+
+def drive(twin, url, rate=50.0, limit_s=20.0, **cfg):
+    """Poll until the twin's script ends; returns the odometry pose and the messages."""
+    geom = WheelGeometry(R, B, TPR)
+    msgs = []
+    end = time.monotonic() + limit_s
+    with ModbusBase(ModbusBaseConfig(url=url, rate_hz=rate, timeout_s=0.2, **cfg)) as base:
+        for msg in base.poll():
+            msgs.append(msg)
+            if twin.script_done() or time.monotonic() > end:
+                break
+        msgs.append(base.read())
+    ticks = np.array([(m.left, m.right) for m in msgs if m is not None])
+    inc = ticks_to_increment(np.diff(ticks[:, 0]), np.diff(ticks[:, 1]), geom)
+    return integrate_increments(inc)[-1], msgs
+
+
+def close_pose(a, b, pos_tol, ang_tol):
+    assert np.hypot(a[0] - b[0], a[1] - b[1]) < pos_tol, (a, b)
+    assert abs(math.remainder(a[2] - b[2], 2 * math.pi)) < ang_tol, (a, b)
+
+
+def test_square_drive_over_tcp_with_wrap(twin_factory):
+    script = square_script(1.0, 10.0, R, B, pause=0.3)
+    tw = twin_factory(script=script, time_scale=5.0, encoder_offset=2**31 - 3000)
+    pose, msgs = drive(tw, tw.url)
+    truth = tw.true_pose()
+    close_pose(truth, (0.0, 0.0, 0.0), 1e-9, 1e-9)         # the square closes exactly
+    close_pose(pose, truth, 0.02, 0.02)                   # odometry within integration error
+    assert min(m.left for m in msgs) < 2**31 < max(m.left for m in msgs)  # crossed the wrap
+    assert msgs[-1].errors["timeout"] == 0
+
+
+def test_circle_drive_over_rtu_pty(twin_factory):
+    script = circle_script(0.8, 0.6, R, B, turns=0.75)
+    tw = twin_factory(rtu=True, script=script, time_scale=4.0)
+    pose, _ = drive(tw, tw.url)
+    truth = tw.true_pose()
+    close_pose(truth, (-0.8, 0.8, -math.pi / 2), 1e-6, 1e-6)  # three quarters, centre (0, 0.8)
+    close_pose(pose, truth, 0.01, 0.01)                  # constant speeds: arcs are exact
+
+
+def test_slip_and_bias_show_as_odometry_error(twin_factory):
+    # a straight 1 m drive; the left encoder over-reads 2 %: odometry turns right
+    tw = twin_factory(script=[(2.0, 10.0, 10.0)], time_scale=5.0, bias=(0.02, 0.0))
+    pose, _ = drive(tw, tw.url)
+    truth = tw.true_pose()
+    close_pose(truth, (1.0, 0.0, 0.0), 1e-9, 1e-9)
+    assert pose[2] == pytest.approx(-0.02 / B, rel=0.05)   # (sr - sl) / b, 1 m each
+
+
+@pytest.mark.parametrize("rtu", [False, True])
+def test_faults_are_counted_and_recovered(twin_factory, rtu):
+    tw = twin_factory(rtu=rtu)
+    with ModbusBase(ModbusBaseConfig(url=tw.url, timeout_s=0.1)) as base:
+        assert base.read() is not None
+        for fault, counter in (("no_reply", "timeout"), ("slow", "timeout"),
+                               ("exception", "device")):
+            tw.set_fault(fault, delay_s=0.15)
+            before = base.errors.as_dict()[counter]
+            t0 = time.monotonic()
+            assert base.read() is None
+            assert time.monotonic() - t0 < 5.0   # bounded by the timeout: no stall
+            assert base.errors.as_dict()[counter] == before + 1
+            tw.set_fault(None)
+            time.sleep(0.1)   # let a late reply of the "slow" fault arrive, to be drained
+            ok = [base.read() for _ in range(3)]
+            assert all(m is not None for m in ok), (fault, base.errors)
+        assert base.errors.disconnects == 0
+
+
+def test_poll_keeps_its_deadlines_through_a_fault(twin_factory):
+    tw = twin_factory()
+    tw.set_fault("no_reply")
+    with ModbusBase(ModbusBaseConfig(url=tw.url, timeout_s=0.05, rate_hz=50)) as base:
+        import threading
+
+        stop = threading.Event()
+        threading.Timer(0.6, stop.set).start()
+        threading.Timer(0.3, tw.set_fault, args=(None,)).start()
+        got = list(base.poll(stop=stop))
+    assert base.errors.timeout >= 1
+    assert len(got) >= 1                      # recovered once the fault ended
+
+
+def test_setpoints_refused_unless_enabled(twin_factory):
+    tw = twin_factory()
+    with ModbusBase(ModbusBaseConfig(url=tw.url)) as base:
+        n = tw.requests
+        with pytest.raises(ModbusBaseError, match="disabled"):
+            base.set_wheel_speeds(1.0, 1.0)
+        assert tw.requests == n                      # nothing was sent
+    with ModbusBase(ModbusBaseConfig(url=tw.url, allow_setpoints=True)) as base:
+        with pytest.raises(ModbusBaseError, match="beyond"):
+            base.set_wheel_speeds(100.0, 1.0)
+        assert base.set_wheel_speeds(2.0, -1.5)
+        msg = base.read()
+        assert (msg.left_speed, msg.right_speed) == pytest.approx((2.0, -1.5))
+        tw.set_estop(True)
+        assert base.read().estop
+
+
+def test_word_order_matters_on_the_wire(twin_factory):
+    little = RegisterMap(left_ticks=RegisterField(0, word_order="little"),
+                         right_ticks=RegisterField(2, word_order="little"))
+    tw = twin_factory(registers=little, encoder_offset=70000)
+    with ModbusBase(ModbusBaseConfig(url=tw.url, registers=little)) as base:
+        assert base.read().left == 70000
+    with ModbusBase(ModbusBaseConfig(url=tw.url)) as base:
+        assert base.read().left == decode_registers(encode_registers(70000, 2, "little"))
