@@ -1,0 +1,455 @@
+"""Simulated Hokuyo laser speaking SCIP 2.0 from the device side, on a pseudo-terminal.
+
+Written apart from the driver (its own encoder, checksum and command handling) so that the
+driver's tests exercise two independent readings of the protocol.  It ray-casts a simulated
+world along its trajectory (range noise, dropouts) and can inject faults on demand:
+
+- ``fault_rate``: each byte sent is replaced by a different random byte with that probability;
+- :meth:`HokuyoTwin.truncate` : the next n scan replies are cut short at a random point;
+- :meth:`HokuyoTwin.stall`    : send and answer nothing for a while;
+- :meth:`HokuyoTwin.disconnect` / :meth:`HokuyoTwin.reconnect`: the pty vanishes and returns
+  behind the same path (a USB unplug: the sensor restarts with the laser off).
+
+Every scan reply sent is recorded in :attr:`HokuyoTwin.sent` (device timestamp, whether it
+went out intact, the values encoded) so tests can check what the driver delivered.
+
+Time: the device clock runs ``speed`` times faster than the host's, so tests can stream many
+scans quickly with realistic, distinct timestamps (25 ms apart for a UTM-30LX).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import re
+import signal
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from .pty_device import PtyClosed, PtyDevice
+from .world import NoiseModel, World, get_world
+
+MODELS = {
+    "UTM-30LX": dict(dmin=23, dmax=60000, ares=1440, amin=0, amax=1080, afrt=540, scan=2400,
+                     prod="SOKUIKI Sensor TOP-URG UTM-30LX", firm="1.20.00(16/Nov./2009)"),
+    "URG-04LX": dict(dmin=20, dmax=5600, ares=1024, amin=44, amax=725, afrt=384, scan=600,
+                     prod="SOKUIKI Sensor URG-04LX", firm="3.3.00,06/12/20(1,40-1010mm)"),
+}
+ALIASES = {"utm": "UTM-30LX", "utm-30lx": "UTM-30LX", "urg": "URG-04LX", "urg-04lx": "URG-04LX"}
+
+_SCAN_CMD = re.compile(r"^([GM])([DSE])(\d{4})(\d{4})(\d{2})(?:(\d)(\d{2}))?(;.{0,16})?$")
+_WIDTH = {"D": 3, "S": 2, "E": 3}
+
+
+def sum_char(data: bytes) -> bytes:
+    """The device-side checksum character of ``data``."""
+    return bytes([(sum(data) & 0x3F) + 0x30])
+
+
+def encode_values(values: np.ndarray, width: int) -> bytes:
+    """Each value as ``width`` characters of 6 bits (+0x30), most significant first."""
+    v = np.asarray(values, dtype=np.uint32)[:, None]
+    shifts = np.arange(width - 1, -1, -1, dtype=np.uint32) * 6
+    return (((v >> shifts) & 0x3F) + 0x30).astype(np.uint8).tobytes()
+
+
+def data_lines(payload: bytes) -> bytes:
+    """Split into lines of at most 64 characters, each followed by its checksum and LF."""
+    arr = np.frombuffer(payload, dtype=np.uint8)
+    n = len(arr)
+    if n == 0:
+        return b""
+    starts = np.arange(0, n, 64)
+    sums = (np.add.reduceat(arr.astype(np.uint32), starts) & 0x3F) + 0x30
+    out = bytearray()
+    for i, s in enumerate(starts):   # ~51 lines per scan: cheap
+        out += arr[s:s + 64].tobytes()
+        out.append(int(sums[i]))
+        out.append(0x0A)
+    return bytes(out)
+
+
+def info_line(key: str, value: str) -> bytes:
+    body = f"{key}:{value}".encode("ascii")
+    return body + b";" + sum_char(body) + b"\n"
+
+
+def scan_reply(echo: str, status: str, timestamp: int, values: np.ndarray, enc: str,
+               intensity: np.ndarray | None = None) -> bytes:
+    """The bytes of one scan reply: echo, status, timestamp, data lines, blank line."""
+    if enc == "E":
+        both = np.stack([values, intensity if intensity is not None else values * 0], axis=1)
+        payload = encode_values(both.reshape(-1), 3)
+    else:
+        payload = encode_values(values, _WIDTH[enc])
+    tsc = encode_values(np.array([timestamp]), 4)
+    st = status.encode("ascii")
+    return (echo.encode("ascii") + b"\n" + st + sum_char(st) + b"\n" + tsc + sum_char(tsc)
+            + b"\n" + data_lines(payload) + b"\n")
+
+
+@dataclass
+class SentScan:
+    """What the twin sent for one scan reply (for tests)."""
+
+    timestamp: int          # 24-bit device ms in the reply
+    intact: bool            # no byte of the reply corrupted or cut
+    values: np.ndarray      # ranges as encoded (mm, device error codes included)
+    echo: str
+    # corrupted, yet every line still passes its checksum and the character set: no SCIP
+    # receiver can tell (the 6-bit checksum misses some multi-byte errors)
+    undetectable: bool = False
+
+
+def _passes_checks(orig: bytes, got: bytes) -> bool:
+    """Whether a corrupted scan reply still looks valid line by line (same length)."""
+    if len(orig) != len(got) or orig.count(b"\n") != got.count(b"\n"):
+        return False
+    o_lines, g_lines = orig.split(b"\n"), got.split(b"\n")
+    if [len(x) for x in o_lines] != [len(x) for x in g_lines] or o_lines[0] != g_lines[0]:
+        return False
+    for line in g_lines[1:]:
+        if line and (len(line) < 2 or sum_char(line[:-1])[0] != line[-1]):
+            return False
+    body = b"".join(x[:-1] for x in g_lines[2:] if x)
+    return not body.translate(None, bytes(range(0x30, 0x70)))
+
+
+class HokuyoTwin:
+    """A SCIP 2.0 Hokuyo on a pty.  Use as a context manager or call start()/close()."""
+
+    def __init__(self, model: str = "UTM-30LX", world: str | World = "corridor", *,
+                 fault_rate: float = 0.0, seed: int = 0, link: str | None = None,
+                 speed: float = 1.0, noise: NoiseModel | None = None,
+                 scip1: bool = False, clock0_ms: int = 0, status: str = "00") -> None:
+        name = ALIASES.get(model.lower(), model)
+        if name not in MODELS:
+            raise ValueError(f"unknown Hokuyo model {model!r}; choose from {sorted(MODELS)}")
+        self.model = name
+        self.p = MODELS[name]
+        self.world = get_world(world) if isinstance(world, str) else world
+        self.noise = noise if noise is not None else NoiseModel(sigma=0.01, dropout=0.01)
+        self.fault_rate = float(fault_rate)
+        self.rng = np.random.default_rng(seed)
+        self.fault_rng = np.random.default_rng(seed + 1)
+        self.speed = float(speed)
+        self.clock0_ms = int(clock0_ms)
+        self.bm_status = status               # answer to BM (e.g. "01" = laser malfunction)
+        self.sent: deque[SentScan] = deque(maxlen=100000)
+        self.commands: list[str] = []          # every command line received
+        self.pty = PtyDevice(link)
+        self._scip2 = not scip1
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._t0 = time.monotonic()
+        self._truncate = 0
+        self._stall_until = 0.0
+        self._inbuf = b""
+        self._power_on()
+
+    # -- life cycle ------------------------------------------------------------------------
+    @property
+    def path(self) -> str:
+        return self.pty.path
+
+    def start(self) -> HokuyoTwin:
+        self._thread = threading.Thread(target=self._serve, name="hokuyo-twin", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.pty.close()
+
+    def __enter__(self) -> HokuyoTwin:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- faults ----------------------------------------------------------------------------
+    def truncate(self, n: int = 1) -> None:
+        """Cut the next ``n`` scan replies short."""
+        with self._lock:
+            self._truncate += n
+
+    def stall(self, seconds: float) -> None:
+        """Send nothing and answer nothing for ``seconds`` (commands sent meanwhile are lost)."""
+        with self._lock:
+            self._stall_until = time.monotonic() + seconds
+
+    def disconnect(self) -> None:
+        """Unplug: the pty pair closes and its path disappears."""
+        with self._lock:
+            self.pty.disconnect()
+
+    def reconnect(self) -> None:
+        """Plug back in: a fresh pty behind the same path; the sensor powers up again."""
+        with self._lock:
+            self._power_on()
+            self._inbuf = b""
+            self.pty.reconnect()
+
+    @property
+    def streaming(self) -> bool:
+        return self._stream is not None
+
+    # -- device state ----------------------------------------------------------------------
+    def _power_on(self) -> None:
+        self._laser = False
+        self._tm_mode = False
+        self._stream: dict | None = None
+
+    def clock_ms(self) -> float:
+        return self.clock0_ms + (time.monotonic() - self._t0) * 1000.0 * self.speed
+
+    def _stamp(self) -> int:
+        return int(self.clock_ms()) % (1 << 24)
+
+    @property
+    def scan_period_s(self) -> float:
+        """Wall-clock time between scans (device period divided by ``speed``)."""
+        return 60.0 / self.p["scan"] / self.speed
+
+    # -- serving ---------------------------------------------------------------------------
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                open_ = self.pty.is_open
+                stalled = time.monotonic() < self._stall_until
+            if not open_ or stalled:
+                time.sleep(0.005)
+                continue
+            wait = 0.02
+            if self._stream is not None:
+                wait = max(0.0, min(wait, self._stream["due"] - time.monotonic()))
+            try:
+                data = self.pty.read(4096, wait)
+                if data:
+                    self._on_input(data)
+                self._maybe_stream()
+            except (PtyClosed, OSError):
+                time.sleep(0.005)   # disconnected under our feet; wait for reconnect()
+
+    def _on_input(self, data: bytes) -> None:
+        self._inbuf += data
+        *lines, self._inbuf = self._inbuf.replace(b"\r", b"\n").split(b"\n")
+        if len(self._inbuf) > 256:            # no terminator in sight: drop it
+            self._inbuf = b""
+        for raw in lines:
+            if raw:
+                self._command(raw.decode("ascii", "replace"))
+
+    def _send(self, data: bytes, scan: SentScan | None = None, cut: bool = False) -> None:
+        """Write with byte errors (and an optional cut) applied; record scans."""
+        intact, orig = True, data
+        if cut and len(data) > 30:
+            data = data[: int(self.fault_rng.integers(20, len(data) - 2))]
+            intact = False
+        if self.fault_rate > 0:
+            hits = np.flatnonzero(self.fault_rng.random(len(data)) < self.fault_rate)
+            if hits.size:
+                buf = np.frombuffer(data, dtype=np.uint8).copy()
+                buf[hits] ^= self.fault_rng.integers(1, 256, hits.size).astype(np.uint8)
+                data = buf.tobytes()
+                intact = False
+        if scan is not None:
+            scan.intact = intact
+            scan.undetectable = not intact and not cut and _passes_checks(orig, data)
+            self.sent.append(scan)
+        self.pty.write(data, timeout=0.5)
+
+    def _reply(self, echo: str, status: str, body: bytes = b"") -> None:
+        st = status.encode("ascii")
+        self._send(echo.encode("ascii") + b"\n" + st + sum_char(st) + b"\n" + body + b"\n")
+
+    def _command(self, line: str) -> None:
+        self.commands.append(line)
+        if not self._scip2:
+            if line == "SCIP2.0":
+                self._scip2 = True
+                self._send(b"SCIP2.0\n0\n\n")
+            else:
+                self._send(line.encode("ascii", "replace") + b"\nE\n\n")
+            return
+        cmd = line.split(";", 1)[0]
+        if self._tm_mode and not cmd.startswith("TM"):
+            self._reply(line, "0E")
+            return
+        if cmd == "QT":
+            self._stream = None
+            self._laser = False
+            self._reply(line, "00")
+        elif cmd == "BM":
+            if self.bm_status != "00":
+                self._reply(line, self.bm_status)
+            else:
+                self._reply(line, "02" if self._laser else "00")
+                self._laser = True
+        elif cmd in ("RS", "RT"):
+            self._power_on()
+            self._reply(line, "00")
+        elif cmd == "VV":
+            self._reply(line, "00", b"".join(info_line(k, v) for k, v in (
+                ("VEND", "Hokuyo Automatic Co.,Ltd."), ("PROD", self.p["prod"]),
+                ("FIRM", self.p["firm"]), ("PROT", "SCIP 2.0"), ("SERI", "H0000001"))))
+        elif cmd == "PP":
+            p = self.p
+            self._reply(line, "00", b"".join(info_line(k, str(v)) for k, v in (
+                ("MODL", self.model), ("DMIN", p["dmin"]), ("DMAX", p["dmax"]),
+                ("ARES", p["ares"]), ("AMIN", p["amin"]), ("AMAX", p["amax"]),
+                ("AFRT", p["afrt"]), ("SCAN", p["scan"]))))
+        elif cmd == "II":
+            self._reply(line, "00", b"".join(info_line(k, v) for k, v in (
+                ("MODL", self.model), ("LASR", "ON" if self._laser else "OFF"),
+                ("SCSP", f"Initial({self.p['scan']}[rpm])"), ("MESM", "Measuring by Normal Mode"),
+                ("SBPS", "USB only"), ("TIME", encode_values(np.array([self._stamp()]),
+                                                              4).decode()),
+                ("STAT", "Sensor works well."))))
+        elif cmd.startswith("TM") and len(cmd) == 3:
+            self._time_command(line, cmd[2])
+        elif cmd.startswith("SS") and len(cmd) == 8 and cmd[2:].isdigit():
+            self._reply(line, "00")           # a pty passes any rate
+        elif cmd[:1] in ("G", "M") and cmd[1:2] in ("D", "S", "E"):
+            self._scan_command(line, cmd)
+        else:
+            self._reply(line, "0E")
+
+    def _time_command(self, line: str, code: str) -> None:
+        if code == "0":
+            self._stream = None
+            self._reply(line, "02" if self._tm_mode else "00")
+            self._tm_mode = True
+        elif code == "1":
+            if not self._tm_mode:
+                self._reply(line, "01")
+                return
+            t = encode_values(np.array([self._stamp()]), 4)
+            self._reply(line, "00", t + sum_char(t) + b"\n")
+        elif code == "2":
+            self._reply(line, "00" if self._tm_mode else "03")
+            self._tm_mode = False
+        else:
+            self._reply(line, "01")
+
+    def _scan_command(self, line: str, cmd: str) -> None:
+        m = _SCAN_CMD.match(line)
+        if not m:
+            self._reply(line, "0H" if len(cmd) < 12 else "0D")
+            return
+        kind, enc, start, end, cluster = m.group(1), m.group(2), int(m.group(3)), \
+            int(m.group(4)), max(1, int(m.group(5)))
+        if kind == "M" and m.group(6) is None:
+            self._reply(line, "0H")
+            return
+        if end > self.p["amax"] or start < self.p["amin"]:
+            self._reply(line, "04")
+            return
+        if end < start:
+            self._reply(line, "05")
+            return
+        spec = dict(enc=enc, start=start, end=end, cluster=cluster, echo=line)
+        if kind == "G":
+            if not self._laser:
+                self._reply(line, "10")
+                return
+            self._send_scan(spec, line, "00")
+            return
+        skip, count = int(m.group(6)), int(m.group(7))
+        self._laser = True
+        self._reply(line, "00")
+        spec.update(skip=skip, count=count, sent=0, tick=0,
+                    due=time.monotonic() + self.scan_period_s)
+        self._stream = spec
+
+    def _maybe_stream(self) -> None:
+        s = self._stream
+        if s is None or time.monotonic() < s["due"]:
+            return
+        s["due"] += self.scan_period_s
+        if s["due"] < time.monotonic():      # fell behind (slow host): do not burst
+            s["due"] = time.monotonic() + self.scan_period_s
+        s["tick"] += 1
+        if (s["tick"] - 1) % (s["skip"] + 1):
+            return
+        s["sent"] += 1
+        remaining = max(0, s["count"] - s["sent"]) if s["count"] else 0
+        echo = s["echo"][:13] + f"{remaining:02d}" + s["echo"][15:]
+        self._send_scan(s, echo, "99")
+        if s["count"] and s["sent"] >= s["count"]:
+            self._stream = None
+
+    def _measure(self, spec: dict) -> tuple[np.ndarray, np.ndarray | None]:
+        """Ranges (mm, with device error codes) of the requested steps, cluster centres."""
+        p = self.p
+        steps = np.arange(spec["start"], spec["end"] + 1, spec["cluster"], dtype=float)
+        steps += (np.minimum(spec["cluster"], spec["end"] + 1 - steps) - 1) / 2.0
+        angles = (steps - p["afrt"]) * 2.0 * np.pi / p["ares"]
+        t = self.clock_ms() / 1000.0
+        r = self.world.scan(t, angles, p["dmax"] / 1000.0, self.noise, self.rng)
+        mm = np.round(np.nan_to_num(r, nan=0.0) * 1000.0)
+        limit = 4095 if spec["enc"] == "S" else p["dmax"]
+        bad = ~np.isfinite(r) | (mm > limit)
+        mm = np.where(bad, 1, np.clip(mm, 0, limit)).astype(np.uint32)   # 1: no echo code
+        inten = None
+        if spec["enc"] == "E":
+            inten = np.where(bad, 0, 4000 - np.minimum(mm // 20, 3000)).astype(np.uint32)
+        return mm, inten
+
+    def _send_scan(self, spec: dict, echo: str, status: str) -> None:
+        mm, inten = self._measure(spec)
+        ts = self._stamp()
+        block = scan_reply(echo, status, ts, mm, spec["enc"], inten)
+        with self._lock:
+            cut = self._truncate > 0
+            if cut:
+                self._truncate -= 1
+        self._send(block, SentScan(ts, True, mm, echo), cut=cut)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``cgamap sim-device hokuyo``: serve on a pty until SIGINT/SIGTERM.
+
+    Prints the device path first.  SIGUSR1 unplugs the device for 1 s (then it returns at the
+    same path); SIGUSR2 stalls it for 2 s.  ``--model`` (if the CLI gives one) or the
+    environment variable ``CGAMAP_HOKUYO_MODEL`` picks UTM-30LX (default) or URG-04LX.
+    """
+    model = getattr(args, "model", None) or os.environ.get("CGAMAP_HOKUYO_MODEL", "UTM-30LX")
+    tmp = tempfile.mkdtemp(prefix="cgamap-hokuyo-")
+    try:
+        twin = HokuyoTwin(model, getattr(args, "world", "corridor"),
+                          fault_rate=getattr(args, "fault_rate", 0.0) or 0.0,
+                          seed=getattr(args, "seed", 0) or 0, link=os.path.join(tmp, "ttyACM0"))
+    except ValueError as exc:   # drivers may not import the CLI layer: report like it does
+        os.rmdir(tmp)
+        print(f"cgamap: sim-device hokuyo: {exc}", file=sys.stderr)
+        return 2
+    done = threading.Event()
+
+    def unplug(*_a) -> None:
+        twin.disconnect()
+        threading.Timer(1.0, twin.reconnect).start()
+
+    signal.signal(signal.SIGINT, lambda *_a: done.set())
+    signal.signal(signal.SIGTERM, lambda *_a: done.set())
+    signal.signal(signal.SIGUSR1, unplug)
+    signal.signal(signal.SIGUSR2, lambda *_a: twin.stall(2.0))
+    with twin:
+        print(twin.path, flush=True)
+        print(f"hokuyo twin: {twin.model}, world {twin.world.name}, fault rate "
+              f"{twin.fault_rate:g}; SIGUSR1 unplugs 1 s, SIGUSR2 stalls 2 s", file=sys.stderr)
+        while not done.wait(0.5):
+            pass
+    with contextlib.suppress(OSError):
+        os.rmdir(tmp)
+    return 0
