@@ -1,0 +1,119 @@
+"""``cgamap planes``: planes of a point cloud file or of one stereo pair.
+
+    cgamap planes --cloud FILE.{ply,pcd,npy} [--method ransac|hough] [--json]
+    cgamap planes --stereo LEFT RIGHT --calib FILE [--method ...] [--json]
+
+Planes are printed largest first, in the cloud's own frame (for a stereo pair: the left
+camera's optical frame). With ``--json`` the output is one object
+``{"planes": [{"normal": [x, y, z], "rho": m, "inliers": n, ...}, ...]}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from cgamap.daemon.cli import UsageError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("planes", help="detect planes in a point cloud or a stereo pair",
+                              description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--cloud", metavar="FILE", help="point cloud: .pcd, .ply or .npy")
+    src.add_argument("--stereo", nargs=2, metavar=("LEFT", "RIGHT"),
+                     help="a stereo image pair (needs --calib)")
+    p.add_argument("--calib", metavar="FILE", help="stereo calibration file (with --stereo)")
+    p.add_argument("--method", choices=("ransac", "hough"), default="ransac")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.add_argument("--threshold", type=float, default=0.02, help="inlier distance, m")
+    p.add_argument("--range-noise", type=float, default=None,
+                   help="extra threshold per squared range, 1/m (default: 0 for files, "
+                        "0.003 for stereo)")
+    p.add_argument("--min-inliers", type=int, default=1000)
+    p.add_argument("--max-planes", type=int, default=10)
+    p.add_argument("--max-depth", type=float, default=10.0,
+                   help="stereo: drop points farther than this, m")
+    p.add_argument("--seed", type=int, default=0, help="random seed (results repeat)")
+    p.set_defaults(func=run)
+
+
+def _positive(name: str, value: float) -> None:
+    if not value > 0:
+        raise UsageError(f"{name}: must be positive, got {value}")
+
+
+def _load_cloud(path: str) -> np.ndarray:
+    from cgamap.mapping.pcd import CloudFormatError, read_cloud
+
+    if not Path(path).is_file():
+        raise UsageError(f"--cloud {path}: no such file")
+    try:
+        return read_cloud(path)
+    except CloudFormatError as exc:
+        raise UsageError(f"--cloud {exc}") from None
+
+
+def _stereo_points(left: str, right: str, calib: str | None, max_depth: float) -> np.ndarray:
+    import cv2
+    from cgamap.drivers.stereo import points_from_stereo_pair
+
+    if not calib:
+        raise UsageError("--stereo: needs --calib FILE")
+    for name in (left, right, calib):
+        if not Path(name).is_file():
+            raise UsageError(f"--stereo/--calib {name}: no such file")
+    imgs = [cv2.imread(name, cv2.IMREAD_UNCHANGED) for name in (left, right)]
+    for name, img in zip((left, right), imgs, strict=True):
+        if img is None:
+            raise UsageError(f"--stereo {name}: not an image OpenCV can read")
+    try:
+        return points_from_stereo_pair(imgs[0], imgs[1], calib, max_depth=max_depth)
+    except (ValueError, KeyError, TypeError, OSError) as exc:
+        raise UsageError(f"--calib {calib}: {exc}") from None
+
+
+def run(args) -> int:
+    from cgamap.mapping.pcd import finite_points
+    from cgamap.mapping.planes import PlaneParams, detect_planes
+
+    _positive("--threshold", args.threshold)
+    _positive("--min-inliers", args.min_inliers)
+    _positive("--max-planes", args.max_planes)
+    t0 = time.perf_counter()
+    if args.cloud:
+        cloud = _load_cloud(args.cloud)
+        range_noise = 0.0 if args.range_noise is None else args.range_noise
+    else:
+        cloud = _stereo_points(args.stereo[0], args.stereo[1], args.calib, args.max_depth)
+        range_noise = 0.003 if args.range_noise is None else args.range_noise
+    if range_noise < 0:
+        raise UsageError(f"--range-noise: must not be negative, got {range_noise}")
+    pts = finite_points(cloud)
+    if len(pts) < 3:
+        raise UsageError("input: fewer than 3 finite points")
+    t1 = time.perf_counter()
+    prm = PlaneParams(threshold=args.threshold, range_noise=range_noise,
+                      min_inliers=args.min_inliers, max_planes=args.max_planes)
+    planes = detect_planes(pts, args.method, prm, seed=args.seed)
+    t2 = time.perf_counter()
+    if args.json:
+        out = {"planes": [p.to_dict() for p in planes], "points": int(len(pts)),
+               "method": args.method,
+               "seconds": {"load": round(t1 - t0, 4), "detect": round(t2 - t1, 4)}}
+        json.dump(out, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    print(f"{len(planes)} planes in {len(pts)} points ({args.method}, {1000 * (t2 - t1):.0f} ms)")
+    for i, p in enumerate(planes):
+        t, ph, r = p.hough
+        n = p.normal
+        print(f"{i:2d}  n=({n[0]:+.4f} {n[1]:+.4f} {n[2]:+.4f})  rho={p.rho:.4f} m  "
+              f"theta={np.degrees(t):6.2f} phi={np.degrees(ph):7.2f} deg  inliers={p.inliers}  "
+              f"rms={1000 * p.rms:.1f} mm  area={p.area:.2f} m2")
+    return 0
