@@ -1,0 +1,87 @@
+"""``cgamap stereo``: grab stereo frames from a camera, the simulated world or a recording and
+write them to a folder (left/right PNG, 16-bit disparity PNG, depth .npy, points .npy,
+calibration YAML, frames.jsonl; layout in ``drivers/stereo_replay.py``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+from cgamap.daemon.cli import UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stereo", help="grab stereo frames and write images, disparity, points")
+    p.add_argument("--model", required=True,
+                   choices=["depthai", "opencv", "synthetic", "replay"],
+                   help="backend: OAK camera, OpenCV cameras, simulated world, recording")
+    p.add_argument("--device", default="",
+                   help="depthai: device id/IP ('' = first); opencv: 'L,R' indices or "
+                        "'sbs:SRC'; synthetic: world name (corridor, room, loop, stairs, "
+                        "corridor-boxes); replay: recording folder")
+    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--count", type=int, default=1, help="frames to grab (default 1)")
+    p.add_argument("--calib", help="stereo calibration YAML (opencv; replay override)")
+    p.add_argument("--num-disparities", type=int, default=64, help="SGBM search range")
+    p.add_argument("--block-size", type=int, default=5, help="SGBM block size (odd)")
+    p.add_argument("--max-depth", type=float, default=20.0, help="drop points beyond (m)")
+    p.add_argument("--stride", type=int, default=1, help="keep every n-th pixel for points")
+    p.add_argument("--no-points", action="store_true", help="do not write points .npy")
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait per frame")
+    p.set_defaults(func=run)
+
+
+def _grabber(args: argparse.Namespace):
+    from cgamap.drivers.stereo import open_grabber
+
+    config: dict = {"sgbm": {"num_disparities": args.num_disparities,
+                             "block_size": args.block_size}}
+    if args.calib:
+        config["calibration"] = args.calib
+    if args.model == "depthai":
+        config = {"discovery_timeout": min(args.timeout, 10.0)}
+    if args.model == "replay" and not args.device:
+        raise UsageError("stereo: --device: give the recording folder to replay")
+    if args.model == "synthetic":
+        config["seed"] = 0
+    try:
+        return open_grabber(args.model, args.device, config)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        raise UsageError(f"stereo: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from cgamap.drivers.stereo_depthai import DeviceNotFound
+    from cgamap.drivers.stereo_replay import SequenceWriter
+
+    if args.count < 1:
+        raise UsageError("stereo: --count: must be at least 1")
+    if args.stride < 1:
+        raise UsageError("stereo: --stride: must be at least 1")
+    grabber = _grabber(args)
+    writer = SequenceWriter(args.out, save_points=not args.no_points, stride=args.stride,
+                            max_depth=args.max_depth)
+    try:
+        grabber.open()
+    except DeviceNotFound as exc:
+        raise UsageError(f"stereo: {exc}", code=1) from None
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        raise UsageError(f"stereo: {exc}", code=1) from None
+    try:
+        for frame in grabber.frames(count=args.count, timeout=args.timeout):
+            rec = writer.write(frame)
+            depth = frame.depth_image()
+            med = float(np.nanmedian(depth)) if np.isfinite(depth).any() else float("nan")
+            print(f"frame {frame.seq}: {rec.get('n_points', 0)} points, "
+                  f"median depth {med:.2f} m -> {args.out}/{rec['left']}", flush=True)
+    except TimeoutError as exc:
+        raise UsageError(f"stereo: {exc}", code=1) from None
+    except ValueError as exc:
+        raise UsageError(f"stereo: {exc}", code=1) from None
+    finally:
+        grabber.close()
+    if writer.count == 0:
+        print("cgamap: stereo: no frames", file=sys.stderr)
+        return 1
+    return 0
