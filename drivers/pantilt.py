@@ -1,0 +1,399 @@
+"""Pan-tilt head of two Dynamixel X-series servos (Protocol 2.0) through dynamixel-sdk.
+
+Joint angles are radians with 0 at position 2048 (the middle of the 0..4095 turn) unless a
+joint's ``zero`` says otherwise.  Axes (DESIGN.md camera chain, seed eqs. 17-22): **pan** turns
+the head about the base's +z axis (positive = counter-clockwise seen from above, the camera looks
+left); **tilt** turns the head about the pan-turned head's +y axis (y left; positive = right-handed
+about +y, so the camera's forward axis dips: positive tilt looks *down*).  :meth:`PanTilt.rotors`
+gives ``R_pan = rotor(e_z, pan)`` and ``R_tilt = rotor(e_y, tilt)``, to be used as
+``R_pt = R_pos R_pan R_tilt``.  ``sign: -1`` in a joint's config flips a servo mounted the other
+way round.
+
+Start-up: open the port, ping both IDs and check the model numbers against the accepted list,
+set the profile velocity.  ``move`` refuses (raises :class:`PanTiltLimitError`) a goal outside a
+joint's limits before anything is sent; goals go out in one SYNC_WRITE.  ``read_state`` does a
+SYNC_READ of Moving..Present Position (addresses 122-135) and of Hardware Error Status (70).
+``PanTiltState.hardware_error`` packs the pan servo's status in bits 0-7 and the tilt servo's in
+bits 8-15 (bit 2 overheating, 3 encoder, 4 electrical shock, 5 overload, 0 input voltage).
+
+dynamixel-sdk workarounds, all in :class:`_Port` and :meth:`PanTilt._txrx` (devices.md §1.7):
+the port is opened with a 2 ms read timeout instead of ``timeout=0`` (the SDK's receive loop
+spins on ``readPort`` and holds the GIL); the packet timeout uses a configurable latency
+(``latency_ms``, default 50, instead of the module constant 16 that fails under load) measured on
+``time.monotonic`` (not wall time, which NTP steps); ports may be URLs (``socket://``); and after
+any failed transaction the driver waits one more packet timeout and drops the input, so a late
+reply is never taken for the next request's.  ``max_timeouts`` failures in a row raise
+:class:`PanTiltBusError` (a bus fault, for the supervisor to restart the device).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import serial
+from cgamap.cga import Multivector, rotor
+
+from .messages import ErrorCounters, PanTiltState
+
+log = logging.getLogger(__name__)
+
+ADDR_TORQUE, ADDR_HW_ERROR, ADDR_PROFILE_VEL, ADDR_GOAL_POS = 64, 70, 112, 116
+ADDR_STATE, STATE_LEN = 122, 14            # Moving(122) .. Present Position(132..135)
+POS_PER_RAD = 4096.0 / (2.0 * math.pi)
+VEL_UNIT = 0.229 * 2.0 * math.pi / 60.0    # rad/s per velocity unit (0.229 rev/min)
+HW_ERROR_BITS = {0: "input voltage", 2: "overheating", 3: "motor encoder",
+                 4: "electrical shock", 5: "overload"}
+# X-series model numbers (ROBOTIS e-manual); extend with ``models`` in the config.
+KNOWN_MODELS = {1000: "XH430-W210", 1010: "XH430-W350", 1020: "XM430-W350",
+                1030: "XM430-W210", 1060: "XL430-W250", 1070: "XC430-W150",
+                1080: "XC430-W240", 1090: "2XL430-W250", 1120: "XM540-W270",
+                1130: "XM540-W150", 1190: "XL330-M077", 1200: "XL330-M288"}
+
+
+class PanTiltError(Exception):
+    """The head could not be opened (absent servo, wrong model) or a command failed."""
+
+
+class PanTiltLimitError(PanTiltError, ValueError):
+    """A goal outside the configured joint limits (refused before anything was sent)."""
+
+
+class PanTiltBusError(PanTiltError):
+    """Repeated failed transactions: treat the bus as faulty."""
+
+
+@dataclass(frozen=True)
+class JointConfig:
+    dxl_id: int
+    min_rad: float
+    max_rad: float
+    zero: int = 2048          # servo position at angle 0
+    sign: int = 1             # -1: servo mounted reversed
+
+    def to_units(self, rad: float) -> int:
+        return round(self.zero + self.sign * rad * POS_PER_RAD)
+
+    def to_rad(self, units: int) -> float:
+        return self.sign * (units - self.zero) / POS_PER_RAD
+
+
+@dataclass
+class PanTiltConfig:
+    url: str = "/dev/ttyUSB0"
+    baudrate: int | None = None            # None: from the URL (baudrate=), else 57600
+    pan: JointConfig = field(default_factory=lambda: JointConfig(1, -2.6, 2.6))
+    tilt: JointConfig = field(default_factory=lambda: JointConfig(2, -1.0, 1.0))
+    models: tuple[int, ...] = tuple(KNOWN_MODELS)
+    profile_velocity: float = 2.0          # rad/s (0: the servo's velocity limit)
+    latency_ms: float = 50.0               # packet timeout = bytes on the wire + 2 latency + 2 ms
+    read_timeout_s: float = 0.002          # per readPort call: bounds the SDK's receive loop
+    max_timeouts: int = 5                  # failures in a row before PanTiltBusError
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PanTiltConfig:
+        d = dict(d)
+        kw = {k: v for k, v in d.items() if k in {f.name for f in fields(cls)}}
+        for name in ("pan", "tilt"):
+            if isinstance(kw.get(name), dict):
+                j = dict(kw[name])
+                if "id" in j:
+                    j["dxl_id"] = j.pop("id")
+                kw[name] = JointConfig(**j)
+        if "models" in kw:
+            kw["models"] = tuple(kw["models"])
+        return cls(**kw)
+
+    def with_ids(self, pan_id: int, tilt_id: int) -> PanTiltConfig:
+        return replace(self, pan=replace(self.pan, dxl_id=pan_id),
+                       tilt=replace(self.tilt, dxl_id=tilt_id))
+
+
+def _port_url(url: str) -> tuple[str, int | None]:
+    """pyserial URL or path, and a baud rate from the query (``baudrate=`` / ``baud=``)."""
+    parts = urlsplit(url)
+    opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    baud = opts.get("baudrate", opts.get("baud"))
+    baud_i = int(baud) if baud else None
+    if parts.scheme in ("tcp", "socket"):
+        return f"socket://{parts.netloc}", baud_i
+    if parts.scheme == "serial":
+        return parts.path, baud_i
+    return url.split("?")[0], baud_i
+
+
+def _make_port_class():
+    from dynamixel_sdk import PortHandler
+
+    class _Port(PortHandler):
+        """PortHandler with a blocking read timeout, a configurable latency, a monotonic clock
+        and URL support (devices.md §1.7 pitfalls 1, 2, 6)."""
+
+        def __init__(self, name: str, latency_ms: float, read_timeout_s: float) -> None:
+            super().__init__(name)
+            self.latency_ms = latency_ms
+            self.read_timeout_s = read_timeout_s
+
+        def setupPort(self, cflag_baud):
+            if self.is_open:
+                self.closePort()
+            self.ser = serial.serial_for_url(self.port_name, baudrate=self.baudrate,
+                                             bytesize=serial.EIGHTBITS,
+                                             timeout=self.read_timeout_s, exclusive=True)
+            self.is_open = True
+            self.ser.reset_input_buffer()
+            self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+            return True
+
+        def setBaudRate(self, baudrate):
+            # pyserial takes any rate (and a pty ignores it): no SDK whitelist
+            self.baudrate = baudrate
+            return self.setupPort(baudrate)
+
+        def setPacketTimeout(self, packet_length):
+            self.packet_start_time = self.getCurrentTime()
+            self.packet_timeout = (self.tx_time_per_byte * packet_length
+                                   + 2.0 * self.latency_ms + 2.0)
+
+        def setPacketTimeoutMillis(self, msec):
+            self.packet_start_time = self.getCurrentTime()
+            self.packet_timeout = max(msec, 2.0 * self.latency_ms + 2.0)
+
+        def getCurrentTime(self):
+            return time.monotonic() * 1000.0
+
+    return _Port
+
+
+class PanTilt:
+    """The head.  ``open()`` checks the servos; use as a context manager."""
+
+    def __init__(self, config: PanTiltConfig) -> None:
+        self.config = config
+        self.errors = ErrorCounters()
+        self.models: dict[int, int] = {}
+        self.last_hw_error: dict[int, int] = {}
+        self._port = None
+        self._ph = None
+        self._seq = 0
+        self._fails = 0
+        url, baud = _port_url(config.url)
+        self._port_name = url
+        self.baudrate = config.baudrate or baud or 57600
+
+    @property
+    def ids(self) -> tuple[int, int]:
+        return self.config.pan.dxl_id, self.config.tilt.dxl_id
+
+    # -- the one place that talks to the SDK --------------------------------------------
+    def _txrx(self, what: str, call: Callable[[], Any], dxl_id: int | None = None) -> Any:
+        """Run one SDK call returning ``result`` or ``(…, result, error)``; count failures,
+        resynchronise after them; returns the call's value, or None if it failed."""
+        from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS
+
+        try:
+            out = call()
+        except (OSError, serial.SerialException) as exc:
+            self.errors.disconnects += 1
+            raise PanTiltBusError(f"{self.config.url}: {what}: {exc}") from exc
+        res, err = (out, 0) if isinstance(out, int) else (out[-2], out[-1])
+        if res != COMM_SUCCESS:
+            if res == COMM_RX_CORRUPT:
+                self.errors.checksum += 1
+            elif res == COMM_RX_TIMEOUT:
+                self.errors.timeout += 1
+            else:
+                self.errors.framing += 1
+            log.info("%s: %s: %s", self.config.url, what, self._ph.getTxRxResult(res))
+            self._resync()
+            self._fails += 1
+            if self._fails >= self.config.max_timeouts:
+                self._fails = 0
+                raise PanTiltBusError(f"{self.config.url}: {what}: "
+                                      f"{self.config.max_timeouts} failed transactions in a row")
+            return None
+        self._fails = 0
+        if err:
+            self._note_status_error(what, dxl_id, err)
+        return out
+
+    def _note_status_error(self, what: str, dxl_id: int | None, err: int) -> None:
+        self.errors.device += 1  # bit 7 (alert): read_state reads address 70 for the cause
+        if err & 0x7F:
+            log.info("%s: %s (id %s): %s", self.config.url, what, dxl_id,
+                     self._ph.getRxPacketError(err & 0x7F))
+
+    def _resync(self) -> None:
+        """Late-reply rule: wait one more packet timeout, then drop whatever came in."""
+        time.sleep((2.0 * self.config.latency_ms + 2.0) / 1000.0)
+        try:
+            self._port.clearPort()
+        except (OSError, serial.SerialException):
+            pass
+        self._port.is_using = False
+
+    # -- life cycle ---------------------------------------------------------------------
+    def open(self) -> PanTilt:
+        from dynamixel_sdk import PacketHandler
+
+        port_cls = _make_port_class()
+        self._port = port_cls(self._port_name, self.config.latency_ms,
+                              self.config.read_timeout_s)
+        self._port.baudrate = self.baudrate
+        try:
+            self._port.openPort()
+        except (OSError, serial.SerialException) as exc:
+            raise PanTiltError(f"{self.config.url}: cannot open: {exc}") from exc
+        self._ph = PacketHandler(2.0)
+        try:
+            for joint, name in ((self.config.pan, "pan"), (self.config.tilt, "tilt")):
+                model = self.ping(joint.dxl_id)
+                if model is None:
+                    raise PanTiltError(f"{self.config.url}: {name} servo id {joint.dxl_id} "
+                                       "does not answer ping")
+                if model not in self.config.models:
+                    raise PanTiltError(f"{self.config.url}: {name} servo id {joint.dxl_id} is "
+                                       f"model {model}, not an accepted X-series model")
+                self.models[joint.dxl_id] = model
+            self.set_profile_velocity(self.config.profile_velocity)
+        except PanTiltError:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        if self._port is not None and self._port.is_open:
+            self._port.closePort()
+
+    def __enter__(self) -> PanTilt:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- commands -----------------------------------------------------------------------
+    def ping(self, dxl_id: int) -> int | None:
+        """Model number of a servo, or None if it did not answer (counted)."""
+        out = self._txrx("ping", lambda: self._ph.ping(self._port, dxl_id), dxl_id)
+        return None if out is None else out[0]
+
+    def _sync_write(self, what: str, addr: int, size: int, values: dict[int, int]) -> bool:
+        from dynamixel_sdk import GroupSyncWrite
+
+        gsw = GroupSyncWrite(self._port, self._ph, addr, size)
+        for dxl_id, v in values.items():
+            gsw.addParam(dxl_id, list((int(v) & ((1 << 8 * size) - 1)).to_bytes(size, "little")))
+        return self._txrx(what, gsw.txPacket) is not None
+
+    def _write_each(self, what: str, addr: int, size: int, values: dict[int, int]) -> bool:
+        """Acknowledged writes (one per servo), so refusals (status errors) are seen."""
+        fn = {1: "write1ByteTxRx", 2: "write2ByteTxRx", 4: "write4ByteTxRx"}[size]
+        ok = True
+        for dxl_id, v in values.items():
+            out = self._txrx(what, lambda i=dxl_id, v=v: getattr(self._ph, fn)(
+                self._port, i, addr, int(v) & ((1 << 8 * size) - 1)), dxl_id)
+            ok = ok and out is not None and out[-1] == 0
+        return ok
+
+    def torque(self, on: bool) -> bool:
+        """Torque on or off for both servos; False if a servo refused (e.g. in shutdown)."""
+        return self._write_each("torque", ADDR_TORQUE, 1, {i: int(on) for i in self.ids})
+
+    def set_profile_velocity(self, rad_s: float) -> bool:
+        units = 0 if rad_s <= 0 else max(1, round(rad_s / VEL_UNIT))
+        return self._write_each("profile velocity", ADDR_PROFILE_VEL, 4,
+                                {i: units for i in self.ids})
+
+    def check_goal(self, pan: float, tilt: float) -> None:
+        """Raise PanTiltLimitError unless both angles are finite and within the limits."""
+        for name, j, v in (("pan", self.config.pan, pan), ("tilt", self.config.tilt, tilt)):
+            if not (math.isfinite(v) and j.min_rad <= v <= j.max_rad):
+                raise PanTiltLimitError(f"{name} goal {v:.4f} rad outside "
+                                        f"[{j.min_rad:.4f}, {j.max_rad:.4f}]")
+
+    def move(self, pan: float, tilt: float) -> bool:
+        """Send goal angles (rad) in one SYNC_WRITE; limits checked first (nothing sent if out)."""
+        self.check_goal(pan, tilt)
+        return self._sync_write("goal position", ADDR_GOAL_POS, 4,
+                                {self.config.pan.dxl_id: self.config.pan.to_units(pan),
+                                 self.config.tilt.dxl_id: self.config.tilt.to_units(tilt)})
+
+    def reboot(self) -> bool:
+        """REBOOT both servos (clears a hardware error; torque comes back off)."""
+        ok = True
+        for i in self.ids:
+            ok = self._txrx("reboot", lambda i=i: self._ph.reboot(self._port, i), i) is not None \
+                and ok
+        self.last_hw_error.clear()
+        return ok
+
+    # -- state ----------------------------------------------------------------------------
+    def _sync_read(self, what: str, addr: int, size: int) -> dict[int, bytes] | None:
+        from dynamixel_sdk import GroupSyncRead
+
+        gsr = GroupSyncRead(self._port, self._ph, addr, size)
+        for i in self.ids:
+            gsr.addParam(i)
+        if self._txrx(what, gsr.txRxPacket) is None:
+            return None
+        return {i: bytes(gsr.data_dict[i]) for i in self.ids}
+
+    def read_state(self) -> PanTiltState | None:
+        """Present angles, moving flag and hardware error status; None after a counted error."""
+        data = self._sync_read("present position", ADDR_STATE, STATE_LEN)
+        if data is None:
+            return None
+        stamp = time.monotonic_ns()
+        hw = self._sync_read("hardware error status", ADDR_HW_ERROR, 1)
+        if hw is not None:
+            for i in self.ids:
+                self.last_hw_error[i] = hw[i][0]
+            if any(hw[i][0] for i in self.ids):
+                self.errors.device += 1
+        pan_id, tilt_id = self.ids
+
+        def pos(i: int) -> int:
+            return int.from_bytes(data[i][10:14], "little", signed=True)
+
+        packed = self.last_hw_error.get(pan_id, 0) | self.last_hw_error.get(tilt_id, 0) << 8
+        self._seq += 1
+        return PanTiltState(seq=self._seq, stamp_ns=stamp,
+                            pan=self.config.pan.to_rad(pos(pan_id)),
+                            tilt=self.config.tilt.to_rad(pos(tilt_id)),
+                            moving=bool(data[pan_id][0] or data[tilt_id][0]),
+                            hardware_error=packed, errors=self.errors.as_dict())
+
+    def wait_until_reached(self, pan: float, tilt: float, tol: float = 0.01,
+                           timeout: float = 10.0, period: float = 0.02) -> PanTiltState | None:
+        """Poll until both joints are within ``tol`` of the goal (and still); None on timeout."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            st = self.read_state()
+            if (st is not None and abs(st.pan - pan) <= tol and abs(st.tilt - tilt) <= tol
+                    and not st.moving):
+                return st
+            time.sleep(period)
+        return None
+
+    def rotors(self, state: PanTiltState | None = None) -> tuple[Multivector, Multivector]:
+        """(R_pan, R_tilt) of the camera chain: pan about +z, tilt about +y (module docstring)."""
+        st = state if state is not None else self.read_state()
+        if st is None:
+            raise PanTiltError(f"{self.config.url}: no state to make rotors from")
+        return pan_tilt_rotors(st.pan, st.tilt)
+
+
+def pan_tilt_rotors(pan: float, tilt: float) -> tuple[Multivector, Multivector]:
+    """R_pan = rotor(e_z, pan), R_tilt = rotor(e_y, tilt) (seed eqs. 17-22)."""
+    return rotor([0.0, 0.0, 1.0], pan), rotor([0.0, 1.0, 0.0], tilt)
+
+
+def describe_hw_error(bits: int) -> str:
+    """Names of the set Hardware Error Status bits of one servo."""
+    names = [n for b, n in HW_ERROR_BITS.items() if bits >> b & 1]
+    return ", ".join(names) if names else "none"

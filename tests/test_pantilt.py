@@ -1,0 +1,212 @@
+"""Pan-tilt head: Protocol 2.0 framing of the twin, and the real dynamixel-sdk driver against
+the twin on a pty (moves, limits, faults and recovery, rotors)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from cgamap.cga import apply_points
+from cgamap.drivers.pantilt import (
+    PanTilt,
+    PanTiltBusError,
+    PanTiltConfig,
+    PanTiltError,
+    PanTiltLimitError,
+    describe_hw_error,
+    pan_tilt_rotors,
+)
+from cgamap.drivers.sim.dynamixel import (
+    DynamixelBusTwin,
+    build_packet,
+    crc16,
+    parse_packets,
+    stuff,
+    unstuff,
+)
+from hypothesis import given
+from hypothesis import strategies as st
+
+# -- framing ----------------------------------------------------------------------------------
+
+
+def test_reference_packets():
+    assert build_packet(1, 0x01).hex(" ") == "ff ff fd 00 01 03 00 01 19 4e"
+    assert build_packet(1, 0x02, bytes([0x84, 0, 4, 0])).hex(" ") == \
+        "ff ff fd 00 01 07 00 02 84 00 04 00 1d 15"
+    assert build_packet(2, 0x03, bytes([0x74, 0, 0xFF, 0xFF, 0xFD, 0x00])).hex(" ") == \
+        "ff ff fd 00 02 0a 00 03 74 00 ff ff fd fd 00 e1 d8"
+
+
+@given(st.binary(max_size=64))
+def test_crc_matches_sdk(data):
+    from dynamixel_sdk import PacketHandler
+
+    assert crc16(data) == PacketHandler(2.0).updateCRC(0, list(data), len(data))
+
+
+@given(st.lists(st.sampled_from([0x00, 0xFD, 0xFF, 0x55]), max_size=40))
+def test_stuffing_round_trip(body):
+    body = bytes(body)
+    s = stuff(body)
+    assert unstuff(s) == body
+    assert b"\xff\xff\xfd" not in s.replace(b"\xff\xff\xfd\xfd", b"")
+
+
+def test_parse_skips_garbage_and_keeps_partial():
+    pkt = build_packet(1, 0x02, bytes([0x84, 0, 4, 0]))
+    buf = bytearray(b"\x00\x12\xff" + pkt + pkt[:5])
+    out = parse_packets(buf)
+    assert out == [(1, 0x02, bytes([0x84, 0, 4, 0]), True)]
+    assert bytes(buf) == pkt[:5]
+    bad = bytearray(pkt[:-1] + bytes([pkt[-1] ^ 1]))
+    assert parse_packets(bad)[0][3] is False
+
+
+# -- driver against the twin ------------------------------------------------------------------
+
+@pytest.fixture
+def twin():
+    tw = DynamixelBusTwin()
+    tw.start()
+    yield tw
+    tw.stop()
+
+
+def head(twin, **kw):
+    return PanTilt(PanTiltConfig(url=twin.path, profile_velocity=4.0, **kw)).open()
+
+
+def test_open_checks_ping_and_model(twin):
+    with head(twin) as h:
+        assert h.models == {1: 1020, 2: 1060}
+        assert h._port.ser.timeout == pytest.approx(0.002)   # no busy-wait receive loop
+    with pytest.raises(PanTiltError, match="id 7 does not answer"):
+        PanTilt(PanTiltConfig(url=twin.path).with_ids(1, 7)).open()
+    with pytest.raises(PanTiltError, match="model 1060, not an accepted"):
+        PanTilt(PanTiltConfig(url=twin.path, models=(1020,))).open()
+
+
+def test_moves_reach_goals(twin):
+    with head(twin) as h:
+        assert h.torque(True)
+        last = None
+        for pan, tilt in ((0.6, -0.4), (-1.2, 0.5), (0.0, 0.0)):
+            assert h.move(pan, tilt)
+            st = h.wait_until_reached(pan, tilt, tol=0.003, timeout=10.0)
+            assert st is not None, h.read_state()
+            assert twin.angle(1) == pytest.approx(pan, abs=0.003)
+            assert twin.angle(2) == pytest.approx(tilt, abs=0.003)
+            assert last is None or st.seq > last.seq
+            last = st
+        assert h.errors.as_dict() == dict.fromkeys(h.errors.as_dict(), 0)
+
+
+def test_torque_off_does_not_move(twin):
+    with head(twin) as h:
+        h.torque(False)
+        h.move(1.0, 0.5)
+        assert h.wait_until_reached(1.0, 0.5, timeout=0.3) is None
+        assert twin.angle(1) == 0.0
+
+
+def test_out_of_limit_goal_refused_before_sending(twin):
+    with head(twin) as h:
+        n = twin.packets_in
+        for pan, tilt in ((2.7, 0.0), (0.0, -1.5), (math.nan, 0.0)):
+            with pytest.raises(PanTiltLimitError, match="outside"):
+                h.move(pan, tilt)
+        assert twin.packets_in == n
+
+
+def test_servo_refuses_goal_beyond_its_own_limits(twin):
+    # the config allows more than the servo's table (48/52): the servo's refusal is counted
+    twin.servos[1].put(48, 4, 3000)
+    with head(twin) as h:
+        h.torque(True)
+        before = h.errors.device
+        h._write_each("goal", 116, 4, {1: 3500})
+        assert h.errors.device == before + 1
+
+
+@pytest.mark.parametrize("fault,counter", [("no_reply", "timeout"), ("corrupt_crc", "checksum"),
+                                           ("late", "timeout")])
+def test_fault_counted_then_recovered(twin, fault, counter):
+    with head(twin) as h:
+        h.torque(True)
+        twin.set_fault(fault, delay_s=0.15)
+        before = h.errors.as_dict()[counter]
+        assert h.read_state() is None
+        assert h.errors.as_dict()[counter] == before + 1
+        twin.set_fault(None)
+        # after the late-reply rule no stale reply is taken: the next answers are the right ones
+        assert h.ping(1) == 1020 and h.ping(2) == 1060
+        h.move(0.3, 0.2)
+        st = h.wait_until_reached(0.3, 0.2, tol=0.003)
+        assert st is not None
+
+
+def test_fault_on_one_servo(twin):
+    with head(twin) as h:
+        twin.set_fault("no_reply", ids=[2])
+        assert h.read_state() is None
+        assert h.ping(1) == 1020
+        assert h.ping(2) is None
+        twin.set_fault(None)
+        assert h.read_state() is not None
+
+
+def test_repeated_failures_are_a_bus_fault(twin):
+    with head(twin, max_timeouts=3) as h:
+        twin.set_fault("no_reply")
+        assert h.read_state() is None and h.read_state() is None
+        with pytest.raises(PanTiltBusError, match="3 failed transactions"):
+            h.read_state()
+
+
+def test_slow_reply_beyond_sdk_default_timeout_is_tolerated(twin):
+    # the SDK's own timeout is ~34 ms; a 60 ms reply (a loaded CI box) still succeeds
+    with head(twin) as h:
+        twin.set_fault("late", delay_s=0.06)
+        assert h.ping(1) == 1020
+        assert h.errors.timeout == 0
+
+
+def test_hardware_error_reported_and_cleared_by_reboot(twin):
+    with head(twin) as h:
+        h.torque(True)
+        twin.set_fault("hardware_error", ids=[2])
+        st = h.read_state()
+        assert st.hardware_error == 0x04 << 8          # tilt servo: overheating
+        assert describe_hw_error(st.hardware_error >> 8) == "overheating"
+        assert h.errors.device >= 1
+        assert not h.torque(True)                      # shutdown: the servo refuses torque
+        assert h.reboot()
+        assert h.torque(True)
+        assert h.read_state().hardware_error == 0
+        h.move(0.1, 0.1)
+        assert h.wait_until_reached(0.1, 0.1, tol=0.003) is not None
+
+
+def test_rotor_axes_and_signs():
+    R_pan, R_tilt = pan_tilt_rotors(math.pi / 2, 0.0)
+    assert np.allclose(apply_points(R_pan, [1.0, 0.0, 0.0]), [0.0, 1.0, 0.0], atol=1e-12)
+    _, R_tilt = pan_tilt_rotors(0.0, 0.3)
+    # positive tilt: the forward axis dips (looks down)
+    assert np.allclose(apply_points(R_tilt, [1.0, 0.0, 0.0]),
+                       [math.cos(0.3), 0.0, -math.sin(0.3)], atol=1e-12)
+    R_pan, R_tilt = pan_tilt_rotors(0.4, 0.3)
+    combined = apply_points(R_pan * R_tilt, [1.0, 0.0, 0.0])
+    assert np.allclose(combined, [math.cos(0.3) * math.cos(0.4), math.cos(0.3) * math.sin(0.4),
+                                  -math.sin(0.3)], atol=1e-12)
+
+
+def test_rotors_from_state(twin):
+    with head(twin) as h:
+        h.torque(True)
+        h.move(0.5, 0.0)
+        st = h.wait_until_reached(0.5, 0.0, tol=0.003)
+        R_pan, _ = h.rotors(st)
+        x = apply_points(R_pan, [1.0, 0.0, 0.0])
+        assert math.atan2(x[1], x[0]) == pytest.approx(0.5, abs=0.003)
