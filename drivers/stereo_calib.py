@@ -16,9 +16,12 @@ Two YAML forms are accepted (both plain YAML; OpenCV ``FileStorage`` files with
       fx: 368.53; fy: 368.53; cx: 318.11; cy: 224.33; baseline: 0.8387
       size: [640, 480]          # optional
       doffs: 0.0                # optional: cx_right - cx_left offset added to disparity
+      R_rect: 3x3               # optional: raw left camera -> rectified rotation (else I)
 
 After rectification every pair is described by (fx, fy, cx, cy, baseline, doffs):
-depth z = fx * baseline / (d + doffs) for disparity d in pixels of the left image.
+depth z = fx * baseline / (d + doffs) for disparity d in pixels of the left image.  Points
+are given in the raw left camera's optical frame (the rectifying rotation is undone), so the
+camera chain applies whether or not the images needed rectification.
 """
 
 from __future__ import annotations
@@ -47,6 +50,9 @@ class StereoCalibration:
     D2: np.ndarray | None = None
     R: np.ndarray | None = None
     T: np.ndarray | None = None
+    # Rotation from the raw left camera frame to the rectified one (cv2.stereoRectify R1):
+    # rectified points x_rect = R_rect x_raw; None when the pair is already rectified.
+    R_rect: np.ndarray | None = None
     _maps: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -66,7 +72,7 @@ class StereoCalibration:
                      "doffs": float(self.doffs)}
         if self.size is not None:
             out["size"] = [int(self.size[0]), int(self.size[1])]
-        for name in ("K1", "D1", "K2", "D2", "R", "T"):
+        for name in ("R_rect", "K1", "D1", "K2", "D2", "R", "T"):
             val = getattr(self, name)
             if val is not None:
                 out[name] = np.asarray(val, dtype=float).tolist()
@@ -87,10 +93,13 @@ class StereoCalibration:
 
 def rectified_calibration(fx: float, cx: float, cy: float, baseline: float,
                           fy: float | None = None, size: tuple[int, int] | None = None,
-                          doffs: float = 0.0) -> StereoCalibration:
-    """Calibration of an already rectified pair (e.g. the PCL car pair or the OAK output)."""
+                          doffs: float = 0.0, R_rect=None) -> StereoCalibration:
+    """Calibration of an already rectified pair (e.g. the PCL car pair or the OAK output);
+    ``R_rect`` the rotation from the raw left camera to the rectified one, if not identity."""
     return StereoCalibration(fx=float(fx), fy=float(fx if fy is None else fy), cx=float(cx),
-                             cy=float(cy), baseline=float(baseline), size=size, doffs=float(doffs))
+                             cy=float(cy), baseline=float(baseline), size=size, doffs=float(doffs),
+                             R_rect=None if R_rect is None else
+                             np.asarray(R_rect, dtype=float).reshape(3, 3))
 
 
 def from_raw(K1, D1, K2, D2, R, T, size: tuple[int, int], alpha: float = 0.0) -> StereoCalibration:
@@ -110,7 +119,7 @@ def from_raw(K1, D1, K2, D2, R, T, size: tuple[int, int], alpha: float = 0.0) ->
     baseline = abs(P2[0, 3] / P2[0, 0])
     return StereoCalibration(fx=fx, fy=P1[1, 1], cx=P1[0, 2], cy=P1[1, 2], baseline=baseline,
                              size=(w, h), doffs=P2[0, 2] - P1[0, 2], K1=K1, D1=D1, K2=K2, D2=D2,
-                             R=R, T=T, _maps=(m1[0], m1[1], m2[0], m2[1]))
+                             R=R, T=T, R_rect=R1, _maps=(m1[0], m1[1], m2[0], m2[1]))
 
 
 def calibration_from_dict(d: dict) -> StereoCalibration:
@@ -126,7 +135,7 @@ def calibration_from_dict(d: dict) -> StereoCalibration:
         raise ValueError(f"stereo calibration: missing {', '.join(missing)} "
                          "(need fx, cx, cy, baseline or K1, D1, K2, D2, R, T, size)")
     return rectified_calibration(d["fx"], d["cx"], d["cy"], d["baseline"], fy=d.get("fy"),
-                                 size=size, doffs=d.get("doffs", 0.0))
+                                 size=size, doffs=d.get("doffs", 0.0), R_rect=d.get("R_rect"))
 
 
 def _read_filestorage(path: Path) -> dict:

@@ -41,7 +41,8 @@ def depth_to_points(depth: np.ndarray, calib: StereoCalibration, max_depth: floa
                     stride: int = 1, organised: bool = False) -> np.ndarray:
     """Back-project a depth image (metres, NaN = none) to points in the optical frame.
 
-    Returns (n, 3) valid points, or (h, w, 3) with NaN holes when ``organised``.
+    Returns (n, 3) valid points, or (h, w, 3) with NaN holes when ``organised``; points are in
+    the raw left camera frame (a raw calibration's rectifying rotation R_rect is undone).
     ``stride`` subsamples rows and columns (every stride-th pixel).
     """
     z = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
@@ -50,6 +51,8 @@ def depth_to_points(depth: np.ndarray, calib: StereoCalibration, max_depth: floa
     x = (u - calib.cx) * z / calib.fx
     y = (v - calib.cy) * z / calib.fy
     pts = np.stack([x, y, z], axis=-1)
+    if calib.R_rect is not None:  # back from the rectified to the raw left camera frame
+        pts = pts @ np.asarray(calib.R_rect)
     ok = np.isfinite(z) & (z > 0) & (z <= max_depth)
     if organised:
         pts[~ok] = np.nan

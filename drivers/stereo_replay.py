@@ -68,7 +68,7 @@ class SequenceWriter:
         if not self._calib_written:
             c = frame.calib  # images are stored rectified: store the rectified calibration
             rect = rectified_calibration(c.fx, c.cx, c.cy, c.baseline, fy=c.fy, size=c.size,
-                                         doffs=c.doffs)
+                                         doffs=c.doffs, R_rect=c.R_rect)
             save_calibration(rect, self.out / "calibration.yaml")
             self._calib_written = True
         name = f"{frame.seq:06d}"

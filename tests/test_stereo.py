@@ -78,6 +78,11 @@ def test_raw_calibration_rectifies_and_round_trips(tmp_path):
     save_calibration(c, tmp_path / "raw.yaml")
     c2 = load_calibration(tmp_path / "raw.yaml")
     assert c2.fx == pytest.approx(c.fx) and c2.baseline == pytest.approx(c.baseline)
+    assert np.allclose(c2.R_rect, c.R_rect) and not np.allclose(c.R_rect, np.eye(3))
+    # The rectified form keeps the rectifying rotation (a recording of rectified images).
+    r = rectified_calibration(c.fx, c.cx, c.cy, c.baseline, R_rect=c.R_rect)
+    save_calibration(r, tmp_path / "rect.yaml")
+    assert np.allclose(load_calibration(tmp_path / "rect.yaml").R_rect, c.R_rect)
     left = np.random.default_rng(1).integers(0, 255, (400, 640), dtype=np.uint8)
     l2, r2 = c2.rectify(left, left)
     assert l2.shape == left.shape and not np.array_equal(l2, left)

@@ -80,23 +80,59 @@ def _pixel_rays(fx: float, fy: float, cx: float, cy: float, w: int, h: int) -> n
     return d
 
 
-def render_view(scene: Scene3D, H_GC: np.ndarray, calib: StereoCalibration,
-                size: tuple[int, int], offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Grey image in [0, 1] and depth z (NaN = nothing) of a pinhole camera at pose H_GC
-    (optical frame x right, y down, z forward), shifted by ``offset`` metres along its x."""
+def camera_rays(K, D, size: tuple[int, int]) -> np.ndarray:
+    """(h*w, 3) optical-frame rays with z = 1 through every pixel of a real (distorted)
+    camera with matrix K and OpenCV distortion D: renders raw, unrectified views."""
+    import cv2
+
     w, h = size
-    d_c = _pixel_rays(calib.fx, calib.fy, calib.cx, calib.cy, w, h)
+    v, u = np.mgrid[0:h, 0:w]
+    pix = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)[:, None, :]
+    xy = cv2.undistortPointsIter(pix, np.asarray(K, float), np.asarray(D, float), None, None,
+                                 (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
+    xy = xy.reshape(-1, 2)
+    return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+
+
+def render_view(scene: Scene3D, H_GC: np.ndarray, calib: StereoCalibration,
+                size: tuple[int, int], offset: float = 0.0,
+                rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Grey image in [0, 1] and depth z (NaN = nothing) of a camera at pose H_GC (optical
+    frame x right, y down, z forward), shifted by ``offset`` metres along its x.  ``rays``
+    (h*w, 3, z = 1) replace the pinhole rays of ``calib`` (e.g. ``camera_rays``)."""
+    w, h = size
+    d_c = _pixel_rays(calib.fx, calib.fy, calib.cx, calib.cy, w, h) if rays is None else rays
     Rm = H_GC[:3, :3]
     origin = H_GC[:3, 3] + Rm[:, 0] * offset
-    t, idx, a, b = scene.raycast(origin, d_c @ Rm.T)  # t along d_c is the depth z
+    dirs = d_c @ Rm.T
+    t, idx, a, b = scene.raycast(origin, dirs)  # t along a z = 1 ray is the depth z
     # One pixel spans about z/fx metres, more on surfaces seen at a grazing angle.
     n = scene.normals[np.maximum(idx, 0)]
-    dirs = d_c @ Rm.T
     cosang = np.abs(np.einsum("ij,ij->i", n, dirs)) / np.linalg.norm(dirs, axis=1)
     footprint = np.where(idx >= 0, t / calib.fx / np.maximum(cosang, 0.05), 1.0)
     img = shade(scene, idx, a, b, footprint)
     depth = np.where(idx >= 0, t, np.nan)
     return img.reshape(h, w), depth.reshape(h, w)
+
+
+def render_raw_pair(scene: Scene3D, H_GC: np.ndarray, K1, D1, K2, D2, R, T,
+                    size: tuple[int, int], noise: float = 1.0,
+                    rng: np.random.Generator | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unrectified 8-bit pair of a real rig (cv2.stereoCalibrate convention: a point x in the
+    left camera frame is R x + T in the right one), and the raw left view's true depth."""
+    rng = rng or np.random.default_rng(0)
+    R, T = np.asarray(R, float).reshape(3, 3), np.asarray(T, float).reshape(3)
+    H_12 = np.eye(4)  # right camera -> left camera frame: x1 = R^T (x2 - T)
+    H_12[:3, :3], H_12[:3, 3] = R.T, -R.T @ T
+    f = rectified_calibration(float(np.asarray(K1)[0, 0]), 0, 0, 0)  # fx for anti-aliasing
+    left, depth = render_view(scene, H_GC, f, size, rays=camera_rays(K1, D1, size))
+    right, _ = render_view(scene, H_GC @ H_12, f, size, rays=camera_rays(K2, D2, size))
+
+    def to8(img):
+        return np.clip(img * 255.0 + rng.normal(0.0, noise, img.shape), 0, 255).astype(np.uint8)
+
+    return to8(left), to8(right), depth
 
 
 def render_pair(scene: Scene3D, M_GC: Multivector | np.ndarray, calib: StereoCalibration,
