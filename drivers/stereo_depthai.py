@@ -1,8 +1,8 @@
 """The ``depthai`` stereo backend: an OAK camera through the depthai v3 API.
 
 The mono pair (CAM_B left, CAM_C right) feeds a StereoDepth node on the device with the
-ROBOTICS preset; the host receives depth (uint16 millimetres, aligned to the left camera) and
-the rectified left image.  Intrinsics and baseline are read from the device's calibration.
+ROBOTICS preset; the host receives depth (uint16 millimetres, aligned to the rectified left
+view) and the rectified left image.  Intrinsics and baseline are read from the device's calibration.
 
 depthai is imported only when a grabber is opened: building a ``dai.Pipeline()`` searches for
 a device and blocks for seconds (DESIGN.md), so nothing here runs at import time.  Device
@@ -62,15 +62,26 @@ def list_devices(timeout: float = 5.0) -> list[dict[str, str]]:
 
 
 def calibration_from_handler(handler: Any, size: tuple[int, int]) -> StereoCalibration:
-    """Rectified-pair calibration from a ``dai.CalibrationHandler``: CAM_B (left) intrinsics
-    scaled to ``size``, baseline CAM_B-CAM_C in metres (depthai reports centimetres)."""
+    """Calibration of the rectified-left view from a ``dai.CalibrationHandler``.
+
+    depthai rectifies both views onto the right camera's (CAM_C) intrinsics, and rotates the
+    left view by the stored left rectification rotation (its ``H = M_right R1 M_left^-1``;
+    unverified on a device here).  Intrinsics are scaled to ``size``; the baseline CAM_B-CAM_C
+    is reported in centimetres and returned in metres.
+    """
     dai = _import_depthai()
     w, h = int(size[0]), int(size[1])
-    K = np.array(handler.getCameraIntrinsics(dai.CameraBoardSocket.CAM_B, w, h))
+    K = np.array(handler.getCameraIntrinsics(dai.CameraBoardSocket.CAM_C, w, h))
     baseline_cm = handler.getBaselineDistance(dai.CameraBoardSocket.CAM_B,
                                               dai.CameraBoardSocket.CAM_C)
+    try:
+        R1 = np.array(handler.getStereoLeftRectificationRotation(), dtype=float)
+        R1 = R1 if R1.shape == (3, 3) and np.allclose(R1 @ R1.T, np.eye(3), atol=1e-4) \
+            else None
+    except RuntimeError:  # no stereo rectification stored
+        R1 = None
     return rectified_calibration(K[0, 0], K[0, 2], K[1, 2], abs(baseline_cm) / 100.0,
-                                 fy=K[1, 1], size=(w, h))
+                                 fy=K[1, 1], size=(w, h), R_rect=R1)
 
 
 def _stamp_ns(msg: Any) -> int:
@@ -142,7 +153,9 @@ class DepthaiGrabber(StereoGrabber):
                                                                  presetMode=preset)
             stereo.setLeftRightCheck(self.lr_check)
             stereo.setSubpixel(self.subpixel)
-            stereo.setDepthAlign(dai.CameraBoardSocket.CAM_B)
+            # Depth in the rectified left view: the same geometry as the host SGBM path.
+            stereo.setDepthAlign(
+                dai.StereoDepthConfig.AlgorithmControl.DepthAlign.RECTIFIED_LEFT)
             self._q_depth = stereo.depth.createOutputQueue(maxSize=4, blocking=False)
             self._q_left = stereo.rectifiedLeft.createOutputQueue(maxSize=4, blocking=False)
             handler = pipeline.getDefaultDevice().readCalibration()

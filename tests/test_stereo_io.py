@@ -224,6 +224,11 @@ def test_depthai_calibration_from_handler():
     c = calibration_from_handler(h, (1280, 800))
     assert c.fx == pytest.approx(900.0) and c.fy == pytest.approx(902.0)
     assert c.baseline == pytest.approx(0.075) and c.size == (1280, 800)
+    assert c.R_rect is None  # no rectification stored: none applied
+    R1 = cv2.Rodrigues(np.array([0.0, 0.02, 0.01]))[0]
+    h.setStereoLeft(dai.CameraBoardSocket.CAM_B, R1.tolist())
+    h.setStereoRight(dai.CameraBoardSocket.CAM_C, eye)
+    assert np.allclose(calibration_from_handler(h, (640, 400)).R_rect, R1, atol=1e-6)
 
 
 def test_depthai_frame_conversion_shared_path():
