@@ -245,6 +245,7 @@ class _Block:
     size: int = 0
     bad: bool = False
     legacy: bool = False
+    bodyless: bool = False             # an ack or error of a data command: no lines follow
 
 
 def _data_echo(echo: bytes) -> tuple[re.Match[bytes] | None, bool]:
@@ -271,8 +272,12 @@ def _in_alphabet(data: bytes) -> bool:
 _ALPHABET = bytes(range(0x30, 0x70))
 
 
+_STATUS_CHARS = b"0123456789ABCDEFGHIJKLMNOPQRSTUVWXYZ"
+
+
 def _is_status(line: bytes) -> bool:
-    return len(line) == 3 and line_ok(line)
+    """Two status characters (digits, capitals) and their checksum."""
+    return len(line) == 3 and line_ok(line) and not line[:2].translate(None, _STATUS_CHARS)
 
 
 class ScipParser:
@@ -358,7 +363,8 @@ class ScipParser:
         if m is not None and not legacy:
             cmd = m.group(1).decode()
             is_scan = st == (b"99" if continuous else b"00")
-            blk = _Block(echo=m.group(0), status=st, scan=is_scan, cmd=cmd)
+            blk = _Block(echo=m.group(0), status=st, scan=is_scan, cmd=cmd,
+                         bodyless=not is_scan)
             blk.start, blk.end = int(m.group(2)), int(m.group(3))
             blk.cluster = max(1, int(m.group(4)))
             if continuous:
@@ -373,6 +379,9 @@ class ScipParser:
             m2 = _OTHER_ECHO.search(echo)
             blk = _Block(echo=m2.group(0) if m2 else echo, status=st, scan=False,
                          legacy=legacy)
+            if st == b"99":                       # only scans of M* commands carry 99
+                blk.bad = True
+                self.errors.framing += 1
         self._block = blk
 
     def _block_line(self, line: bytes | None, stamp_ns: int | None, out: list) -> None:
@@ -400,6 +409,9 @@ class ScipParser:
 
     def _accept(self, blk: _Block, line: bytes) -> bool:
         """Check one line of a block and keep its payload; False (and counted) if bad."""
+        if blk.bodyless:
+            self.errors.framing += 1
+            return False
         if blk.legacy:                            # SCIP 1.1: no checksums
             blk.data.append(line)
             return True
