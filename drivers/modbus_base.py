@@ -374,22 +374,29 @@ class ModbusBase:
                           right_speed=speeds[1], status=status, estop=estop,
                           errors=self.errors.as_dict())
 
-    def poll(self, count: int | None = None, stop: Any | None = None) -> Iterator[WheelTicks]:
+    def poll(self, count: int | None = None, stop: Any | None = None,
+             max_silence_s: float | None = None) -> Iterator[WheelTicks]:
         """Read at ``rate_hz`` on absolute deadlines; yields each successful read.
 
-        ``count`` limits the number of messages; ``stop`` (a threading.Event) ends the loop.
+        ``count`` limits the number of messages; ``stop`` (a threading.Event) ends the loop;
+        ``max_silence_s``: raise :class:`ModbusBaseError` when no read succeeded for that long.
         """
         period = 1.0 / self.config.rate_hz
-        t0 = time.monotonic()
+        t0 = last_ok = time.monotonic()
         k = 0
         got = 0
         while count is None or got < count:
             if stop is not None and stop.is_set():
                 return
             msg = self.read()
+            now = time.monotonic()
             if msg is not None:
                 got += 1
+                last_ok = now
                 yield msg
+            elif max_silence_s is not None and now - last_ok > max_silence_s:
+                raise ModbusBaseError(f"{self.config.url}: no reply for {max_silence_s:g} s "
+                                      f"({self.errors.as_dict()})")
             k += 1
             now = time.monotonic()
             late = math.floor((now - t0) / period) - k + 1

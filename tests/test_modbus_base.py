@@ -264,3 +264,60 @@ def test_word_order_matters_on_the_wire(twin_factory):
         assert base.read().left == 70000
     with ModbusBase(ModbusBaseConfig(url=tw.url)) as base:
         assert base.read().left == decode_registers(encode_registers(70000, 2, "little"))
+
+
+# -- CLI --------------------------------------------------------------------------------------
+
+@pytest.fixture
+def cli_main(monkeypatch):
+    """cgamap's real main() with only this area's commands (others' modules may be mid-edit)."""
+    from cgamap.daemon import cli
+
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ["cgamap.daemon.cmd_sim",
+                                                 "cgamap.daemon.cmd_base"])
+    return cli.main
+
+def test_cli_odom_json_lines(twin_factory, capsys, cli_main):
+    import json
+
+    tw = twin_factory(script=[(100.0, 4.0, 4.0)], time_scale=2.0)
+    rc = cli_main(["odom", "--device", tw.url, "--count", "5", "--json", "--rate", "25",
+               "--wheel-radius", str(R), "--track", str(B), "--ticks-per-rev", str(TPR)])
+    assert rc == 0
+    lines = [json.loads(s) for s in capsys.readouterr().out.splitlines()]
+    assert len(lines) == 5
+    assert {"stamp_ns", "x", "y", "theta"} <= set(lines[0])
+    assert lines[-1]["x"] > lines[0]["x"] and abs(lines[-1]["theta"]) < 1e-9
+    assert all(b["stamp_ns"] > a["stamp_ns"] for a, b in zip(lines, lines[1:], strict=False))
+
+
+def test_cli_odom_errors_are_one_line(twin_factory, capsys, cli_main):
+    assert cli_main(["odom", "--device", "http://nowhere", "--count", "1"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("cgamap: odom:") and err.count("\n") == 1
+    tw = twin_factory()
+    tw.set_fault("no_reply")
+    assert cli_main(["odom", "--device", tw.url, "--count", "1", "--timeout", "0.5"]) == 1
+    assert "no reply for 0.5 s" in capsys.readouterr().err
+
+
+def test_sim_device_process_prints_address_and_stops():
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import sys; from cgamap.daemon import cli; "
+            "cli.COMMAND_MODULES = ['cgamap.daemon.cmd_sim']; "
+            "sys.exit(cli.main(['sim-device', 'modbus-base']))")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = proc.stdout.readline().strip()
+        host, port = line.split(":")
+        assert host == "127.0.0.1" and int(port) > 0
+        with ModbusBase(ModbusBaseConfig(url=f"tcp://{line}")) as base:
+            assert base.read() is not None
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0

@@ -210,3 +210,43 @@ def test_rotors_from_state(twin):
         R_pan, _ = h.rotors(st)
         x = apply_points(R_pan, [1.0, 0.0, 0.0])
         assert math.atan2(x[1], x[0]) == pytest.approx(0.5, abs=0.003)
+
+
+# -- CLI --------------------------------------------------------------------------------------
+
+@pytest.fixture
+def cli_main(monkeypatch):
+    """cgamap's real main() with only this area's commands (others' modules may be mid-edit)."""
+    from cgamap.daemon import cli
+
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ["cgamap.daemon.cmd_sim",
+                                                 "cgamap.daemon.cmd_base"])
+    return cli.main
+
+def test_cli_pantilt_move_status_torque(twin, capsys, cli_main):
+    import json
+
+    assert cli_main(["pantilt", "--device", twin.path, "--velocity", "4", "move", "0.4", "-0.2",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["pan"] == pytest.approx(0.4, abs=0.005)
+    assert out["tilt"] == pytest.approx(-0.2, abs=0.005)
+    assert cli_main(["pantilt", "--device", twin.path, "--ids", "1,2", "status", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"pan", "tilt"} <= set(out) and out["models"] == {"1": 1020, "2": 1060}
+    assert cli_main(["pantilt", "--device", twin.path, "torque", "off"]) == 0
+    assert twin.servos[1].table[64] == 0
+    assert "pan +0.4" in capsys.readouterr().out
+
+
+def test_cli_pantilt_refusals(twin, capsys, cli_main):
+    n = twin.packets_in
+    assert cli_main(["pantilt", "--device", twin.path, "move", "3.0", "0"]) == 2
+    assert "outside" in capsys.readouterr().err and twin.packets_in == n
+    assert cli_main(["pantilt", "--device", twin.path, "--ids", "1,9", "status"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("cgamap: pantilt:") and "id 9 does not answer" in err
+    assert cli_main(["pantilt", "--device", twin.path, "--ids", "1", "status"]) == 2
+    twin.set_fault("hardware_error", ids=[1])
+    assert cli_main(["pantilt", "--device", twin.path, "status"]) == 3
+    assert "pan overheating" in capsys.readouterr().out

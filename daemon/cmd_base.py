@@ -1,0 +1,213 @@
+"""``cgamap odom`` and ``cgamap pantilt``: the wheel base and the pan-tilt head from the shell.
+
+    cgamap odom --device tcp://192.168.0.10:502 [--count N] [--json] [--rate HZ]
+    cgamap odom --device /dev/ttyUSB1?baudrate=115200 --wheel-radius 0.075 --track 0.4
+    cgamap pantilt --device /dev/ttyUSB0 [--ids 1,2] status [--json]
+    cgamap pantilt --device /dev/ttyUSB0 move 0.5 -0.2 [--no-wait] [--json]
+    cgamap pantilt --device /dev/ttyUSB0 torque on|off
+
+``odom`` polls the base's encoders (drivers.modbus_base) and integrates them with
+mapping.odometry (exact arcs): each line is the pose since the command started, ``x y theta``
+(m, m, rad) with the forward and turn rates; with ``--json`` one object a line with ``seq``,
+``stamp_ns``, ``x``, ``y``, ``theta``, ``v``, ``w``, ``left``, ``right``, ``estop``, ``errors``.
+``--count 0`` streams until interrupted; a base that stays silent for ``--timeout`` s ends it
+with exit code 1.
+
+``pantilt`` angles are radians (pan about the base z axis, positive left; tilt about the head's
+y axis, positive down); ``move`` turns torque on, checks the configured limits before sending
+and waits until the goal is reached unless ``--no-wait``; ``status --json`` gives ``pan``,
+``tilt``, ``moving``, ``hardware_error`` (per servo), ``models`` and ``errors``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from cgamap.daemon.cli import UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = sub.add_parser("odom", help="stream wheel odometry from a Modbus base",
+                       description=__doc__, formatter_class=fmt)
+    p.add_argument("--device", required=True, metavar="URL",
+                   help="tcp://HOST:PORT, rtu+tcp://HOST:PORT, serial://PATH or a device path")
+    p.add_argument("--count", type=int, default=0, help="poses to print (0: until stopped)")
+    p.add_argument("--json", action="store_true", help="one JSON object per pose and line")
+    p.add_argument("--rate", type=float, default=50.0, help="poll rate, Hz")
+    p.add_argument("--every", type=int, default=1, help="print every N-th pose")
+    p.add_argument("--timeout", type=float, default=5.0,
+                   help="give up when the base stays silent this long, s")
+    p.add_argument("--unit", type=int, default=None, help="Modbus device id (default 1)")
+    p.add_argument("--wheel-radius", type=float, default=0.05, help="m")
+    p.add_argument("--track", type=float, default=0.30, help="track width, m")
+    p.add_argument("--ticks-per-rev", type=float, default=4096.0, help="encoder ticks per turn")
+    p.set_defaults(func=run_odom)
+
+    q = sub.add_parser("pantilt", help="status, move and torque of the Dynamixel pan-tilt head",
+                       description=__doc__, formatter_class=fmt)
+    q.add_argument("--device", required=True, metavar="URL",
+                   help="serial port path, serial://PATH?baudrate=N or socket://HOST:PORT")
+    q.add_argument("--ids", default="1,2", metavar="PAN,TILT", help="servo ids (default 1,2)")
+    q.add_argument("--json", action="store_true", help="JSON output")
+    q.add_argument("--pan-limits", default=None, metavar="MIN,MAX", help="rad")
+    q.add_argument("--tilt-limits", default=None, metavar="MIN,MAX", help="rad")
+    q.add_argument("--velocity", type=float, default=None, help="profile velocity, rad/s")
+    acts = q.add_subparsers(dest="action", metavar="ACTION", required=True)
+    hidden_json = {"action": "store_true", "default": argparse.SUPPRESS, "help": "JSON output"}
+    a = acts.add_parser("status", help="present angles and hardware error status")
+    a.add_argument("--json", **hidden_json)
+    m = acts.add_parser("move", help="move to PAN TILT (rad)")
+    m.add_argument("pan", type=float)
+    m.add_argument("tilt", type=float)
+    m.add_argument("--no-wait", action="store_true", help="return once the goal is sent")
+    m.add_argument("--wait-timeout", type=float, default=15.0, help="s")
+    m.add_argument("--json", **hidden_json)
+    t = acts.add_parser("torque", help="torque on or off")
+    t.add_argument("state", choices=("on", "off"))
+    t.add_argument("--json", **hidden_json)
+    q.set_defaults(func=run_pantilt)
+
+
+# -- odom -------------------------------------------------------------------------------------
+
+def run_odom(args: argparse.Namespace) -> int:
+    import numpy as np
+    from cgamap.drivers.modbus_base import ModbusBase, ModbusBaseConfig, ModbusBaseError
+    from cgamap.mapping.odometry import (
+        WheelGeometry,
+        compose_pose2d,
+        ticks_to_increment,
+        velocities,
+    )
+
+    if args.rate <= 0 or args.count < 0 or args.every < 1:
+        raise UsageError("odom: --rate must be > 0, --count >= 0, --every >= 1")
+    cfg = ModbusBaseConfig(url=args.device, device_id=args.unit, rate_hz=args.rate,
+                           wheel_radius=args.wheel_radius, track_width=args.track,
+                           ticks_per_rev=args.ticks_per_rev)
+    geom = WheelGeometry(cfg.wheel_radius, cfg.track_width, cfg.ticks_per_rev)
+    try:
+        base = ModbusBase(cfg).open()
+    except ModbusBaseError as exc:
+        raise UsageError(f"odom: {exc}", 1) from None
+    pose = np.zeros(3)
+    prev = None
+    printed = 0
+    try:
+        for k, msg in enumerate(base.poll(max_silence_s=args.timeout)):
+            v = w = 0.0
+            if prev is not None:
+                inc = ticks_to_increment(msg.left - prev.left, msg.right - prev.right, geom)
+                pose = compose_pose2d(pose, inc)
+                dt = (msg.stamp_ns - prev.stamp_ns) * 1e-9
+                if dt > 0:
+                    v, w = (float(a) for a in velocities(inc, dt))
+            prev = msg
+            if k % args.every:
+                continue
+            x, y, th = (float(a) for a in pose)
+            if args.json:
+                print(json.dumps({"seq": msg.seq, "stamp_ns": msg.stamp_ns, "x": round(x, 6),
+                                  "y": round(y, 6), "theta": round(th, 6), "v": round(v, 6),
+                                  "w": round(w, 6), "left": msg.left, "right": msg.right,
+                                  "estop": msg.estop, "errors": msg.errors}), flush=True)
+            else:
+                print(f"{msg.stamp_ns * 1e-9:.3f}  x {x:+.4f} m  y {y:+.4f} m  "
+                      f"theta {th:+.4f} rad  v {v:+.3f} m/s  w {w:+.3f} rad/s"
+                      + ("  E-STOP" if msg.estop else ""), flush=True)
+            printed += 1
+            if args.count and printed >= args.count:
+                break
+    except ModbusBaseError as exc:
+        raise UsageError(f"odom: {exc}", 1) from None
+    finally:
+        base.close()
+    return 0
+
+
+# -- pantilt ----------------------------------------------------------------------------------
+
+def _pair(text: str, what: str, cast=float) -> tuple:
+    try:
+        a, b = (cast(v) for v in text.split(","))
+    except ValueError:
+        raise UsageError(f"pantilt: {what}: expected two comma-separated values, got {text!r}") \
+            from None
+    return a, b
+
+
+def run_pantilt(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from cgamap.drivers.pantilt import (
+        PanTilt,
+        PanTiltConfig,
+        PanTiltError,
+        PanTiltLimitError,
+        describe_hw_error,
+    )
+
+    pan_id, tilt_id = _pair(args.ids, "--ids", int)
+    cfg = PanTiltConfig(url=args.device).with_ids(pan_id, tilt_id)
+    if args.pan_limits:
+        lo, hi = _pair(args.pan_limits, "--pan-limits")
+        cfg = replace(cfg, pan=replace(cfg.pan, min_rad=lo, max_rad=hi))
+    if args.tilt_limits:
+        lo, hi = _pair(args.tilt_limits, "--tilt-limits")
+        cfg = replace(cfg, tilt=replace(cfg.tilt, min_rad=lo, max_rad=hi))
+    if args.velocity is not None:
+        cfg = replace(cfg, profile_velocity=args.velocity)
+    head = PanTilt(cfg)
+    if args.action == "move":   # refuse a bad goal before even opening the port
+        try:
+            head.check_goal(args.pan, args.tilt)
+        except PanTiltLimitError as exc:
+            raise UsageError(f"pantilt move: {exc}") from None
+    try:
+        head.open()
+    except PanTiltError as exc:
+        raise UsageError(f"pantilt: {exc}", 1) from None
+    try:
+        if args.action == "torque":
+            ok = head.torque(args.state == "on")
+            if not ok:
+                raise UsageError(f"pantilt torque {args.state}: refused or no reply "
+                                 f"(hardware errors: {head.last_hw_error or 'unknown'})", 1)
+        elif args.action == "move":
+            if not head.torque(True):
+                raise UsageError("pantilt move: torque could not be turned on "
+                                 "(servo in shutdown? see status)", 1)
+            if not head.move(args.pan, args.tilt):
+                raise UsageError("pantilt move: goal not sent (no reply)", 1)
+            if not args.no_wait:
+                if head.wait_until_reached(args.pan, args.tilt, tol=0.005,
+                                           timeout=args.wait_timeout) is None:
+                    raise UsageError("pantilt move: goal not reached within "
+                                     f"{args.wait_timeout} s", 1)
+        st = None
+        for _ in range(3):
+            st = head.read_state()
+            if st is not None:
+                break
+            time.sleep(0.05)
+        if st is None:
+            raise UsageError("pantilt: no state from the servos", 1)
+    except PanTiltError as exc:
+        raise UsageError(f"pantilt: {exc}", 1) from None
+    finally:
+        head.close()
+    hw = {"pan": st.hardware_error & 0xFF, "tilt": st.hardware_error >> 8}
+    if args.json:
+        print(json.dumps({"stamp_ns": st.stamp_ns, "pan": round(st.pan, 6),
+                          "tilt": round(st.tilt, 6), "moving": st.moving,
+                          "hardware_error": hw,
+                          "models": {str(k): v for k, v in head.models.items()},
+                          "errors": st.errors}))
+    else:
+        print(f"pan {st.pan:+.4f} rad  tilt {st.tilt:+.4f} rad  "
+              f"moving {'yes' if st.moving else 'no'}  hardware errors: pan "
+              f"{describe_hw_error(hw['pan'])}, tilt {describe_hw_error(hw['tilt'])}")
+    return 0 if not st.hardware_error else 3
