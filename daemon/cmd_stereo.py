@@ -28,6 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-depth", type=float, default=20.0, help="drop points beyond (m)")
     p.add_argument("--stride", type=int, default=1, help="keep every n-th pixel for points")
     p.add_argument("--no-points", action="store_true", help="do not write points .npy")
+    p.add_argument("--global-frame", action="store_true",
+                   help="points in the global frame (camera chain from the frame's robot pose "
+                        "and pan-tilt state) instead of the left camera's optical frame")
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait per frame")
     p.set_defaults(func=run)
 
@@ -60,8 +63,10 @@ def run(args: argparse.Namespace) -> int:
     if args.stride < 1:
         raise UsageError("stereo: --stride: must be at least 1")
     grabber = _grabber(args)
+    mount = getattr(grabber, "mount", None) if args.global_frame else None
     writer = SequenceWriter(args.out, save_points=not args.no_points, stride=args.stride,
-                            max_depth=args.max_depth)
+                            max_depth=args.max_depth, global_frame=args.global_frame,
+                            mount=mount)
     try:
         grabber.open()
     except DeviceNotFound as exc:

@@ -9,7 +9,7 @@ Layout of a recording folder (what ``cgamap stereo --out DIR`` writes; ``left/``
     right/000000.png
     disparity/000000.png    # optional: 16-bit, disparity x 256, 0 = none
     depth/000000.npy        # optional: float32 metres (depth backends; ground truth)
-    points/000000.npy       # optional: (n, 3) float32 points in the optical frame
+    points/000000.npy       # optional: (n, 3) float32 points, left optical frame (or global)
 
 Replay pushes every pair through the same rectify + SGBM path as the live cameras.
 """
@@ -23,13 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from .messages import PanTiltState
-from .stereo import StereoFrame, StereoGrabber, frame_points, sgbm_frame
+from .stereo import StereoFrame, StereoGrabber, frame_points, frame_points_global, sgbm_frame
 from .stereo_calib import (
     StereoCalibration,
     load_calibration,
     rectified_calibration,
     save_calibration,
 )
+from .stereo_points import CameraMount
 from .stereo_sgbm import SgbmParams, make_matcher
 
 DISPARITY_SCALE = 256.0  # 16-bit PNG disparity: value / 256 pixels (KITTI convention)
@@ -52,8 +53,11 @@ class SequenceWriter:
     """Writes frames into a recording folder (the layout above)."""
 
     def __init__(self, out: str | Path, save_points: bool = True, stride: int = 1,
-                 max_depth: float = np.inf):
+                 max_depth: float = np.inf, global_frame: bool = False,
+                 mount: CameraMount | None = None):
         self.out = Path(out)
+        self.global_frame = global_frame
+        self.mount = mount
         self.save_points = save_points
         self.stride = stride
         self.max_depth = max_depth
@@ -91,10 +95,15 @@ class SequenceWriter:
             rec["depth"] = put("depth", ".npy",
                                lambda p: np.save(p, np.asarray(depth, dtype=np.float32)))
         if self.save_points:
-            pts = frame_points(frame, max_depth=self.max_depth, stride=self.stride)
+            if self.global_frame:
+                pts = frame_points_global(frame, self.mount, max_depth=self.max_depth,
+                                          stride=self.stride)
+            else:
+                pts = frame_points(frame, max_depth=self.max_depth, stride=self.stride)
             rec["points"] = put("points", ".npy",
                                 lambda p: np.save(p, pts.astype(np.float32)))
             rec["n_points"] = int(len(pts))
+            rec["points_frame"] = "global" if self.global_frame else "camera"
         if frame.pose_ref is not None:
             rec["pose"] = [float(v) for v in frame.pose_ref]
         if frame.pantilt is not None:

@@ -153,6 +153,15 @@ def test_cli_stereo_synthetic(tmp_path, monkeypatch, capsys):
     assert len(list((out / "points").glob("*.npy"))) == 2
     disp = cv2.imread(str(out / "disparity" / "000000.png"), cv2.IMREAD_UNCHANGED)
     assert disp.dtype == np.uint16 and disp.shape == (400, 640)
+    # Global-frame points: the corridor's walls bound them (|y| <= 1.8 m with the niches).
+    rc = _cli(monkeypatch, ["stereo", "--model", "synthetic", "--out", str(tmp_path / "g"),
+                            "--global-frame", "--max-depth", "8"])
+    assert rc == 0
+    capsys.readouterr()
+    pts = np.load(tmp_path / "g" / "points" / "000000.npy")
+    rec = json.loads((tmp_path / "g" / "frames.jsonl").read_text().splitlines()[0])
+    assert rec["points_frame"] == "global"
+    assert np.percentile(np.abs(pts[:, 1]), 99) < 1.9 and abs(np.percentile(pts[:, 2], 1)) < 0.1
     # ... and the recording replays through the CLI too.
     rc = _cli(monkeypatch, ["stereo", "--model", "replay", "--device", str(out),
                             "--out", str(tmp_path / "again"), "--count", "5"])
