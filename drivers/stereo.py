@@ -141,8 +141,8 @@ def points_from_stereo_pair(left_img: np.ndarray, right_img: np.ndarray, calib,
     from one stereo pair: rectify with the calibration, StereoSGBM disparity, reproject.
 
     ``calib``: a ``StereoCalibration``, a dict of its YAML fields, or a calibration file path
-    (see ``stereo_calib``).  ``sgbm``: matcher parameters (default 64 disparities, or enough to
-    cover the image width's tenth, rounded up to 16).
+    (see ``stereo_calib``).  ``sgbm``: matcher parameters (``SgbmParams`` or
+    a dict of its fields; default 64 disparities, block 5, 3-way mode).
     """
     calib = as_calibration(calib)
     params = sgbm if isinstance(sgbm, SgbmParams) else SgbmParams.from_dict(sgbm)
