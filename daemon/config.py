@@ -25,7 +25,7 @@ MODELS = {
     "laser": ("lms2xx", "hokuyo", "cola", "carmen"),
     "odometry": ("modbus-base", "carmen"),
     "pantilt": ("dynamixel",),
-    "camera": ("oak", "sim-stereo"),
+    "camera": ("oak", "sim-stereo", "depthai", "opencv", "synthetic", "replay"),
 }
 URL_SCHEMES = ("serial", "tcp", "sim", "file", "usb")
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -150,6 +150,11 @@ SCHEMA = Spec("record", fields={
         "lost_quality": Spec("float", default=0.2, check=_non_negative),
         "lost_after": Spec("int", default=8, check=_positive),
         "max_interp_gap": Spec("float", default=0.5, check=_positive),
+        # scans are mapped when the robot moved this much (m, rad) since the last mapped one,
+        # and at most scan_max_rate per second: a standing robot does not grow the pose graph
+        "min_travel": Spec("float", default=0.05, check=_non_negative),
+        "min_turn": Spec("float", default=0.05, check=_non_negative),
+        "scan_max_rate": Spec("float", default=10.0, check=_positive),
     }),
     # sim-only: what the demo drives; ignored by the daemon itself
     "sim": Spec("map", default={}, values=Spec("any")),

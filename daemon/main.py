@@ -28,6 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="take input from an MCAP recording or a CARMEN log, not devices")
     p.add_argument("--replay-rate", type=float, default=0.0,
                    help="replay speed factor (0: as fast as the mapper goes)")
+    p.add_argument("--exit-after-replay", action="store_true",
+                   help="checkpoint and exit when the replay is exhausted")
     p.add_argument("--state-dir", help="override paths.state_dir")
     p.add_argument("--socket", help="override the query socket path")
     p.add_argument("--log-level", choices=config_mod.LOG_LEVELS, help="override log_level")
@@ -58,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     from cgamap.daemon.service import Daemon
 
     daemon = Daemon(cfg, config_path=path, replay=args.replay, replay_rate=args.replay_rate,
-                    state_dir=args.state_dir, socket_path=args.socket)
+                    state_dir=args.state_dir, socket_path=args.socket,
+                    exit_after_replay=args.exit_after_replay)
     return daemon.run()
 
 

@@ -1,0 +1,531 @@
+"""The mapping loop: time-aligned fusion of the device messages into the 2D and 3D maps.
+
+Single-threaded by design (the service calls it from its main loop): odometry poses are kept
+in a short history and interpolated to each scan's timestamp (DESIGN eqs. 10-11: the scan's
+odometry guess, corrected by matching); the pan-tilt state nearest each stereo frame sets its
+camera chain; the 3D pipeline runs per frame at its own rate.  When the match quality stays
+below ``lost_quality`` for ``lost_after`` scans, relocalisation in the Hough domain is tried.
+Everything here is plain data in, plain data out; the mapping maths lives in ``mapping``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from dataclasses import fields, is_dataclass
+from typing import Any
+
+import numpy as np
+from cgamap.drivers.messages import LaserScan, OdometryPose, PanTiltState, WheelTicks
+
+log = logging.getLogger(__name__)
+
+
+def wrap(a):
+    return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
+
+
+def relative(p0, p1) -> np.ndarray:
+    """Motion from pose p0 to p1 in p0's frame (dx, dy, dtheta)."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    c, s = np.cos(p0[2]), np.sin(p0[2])
+    d = p1[:2] - p0[:2]
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap(p1[2] - p0[2]))])
+
+
+def compose(p, inc) -> np.ndarray:
+    p, inc = np.asarray(p, float), np.asarray(inc, float)
+    c, s = np.cos(p[2]), np.sin(p[2])
+    return np.array([p[0] + c * inc[0] - s * inc[1], p[1] + s * inc[0] + c * inc[1],
+                     float(wrap(p[2] + inc[2]))])
+
+
+class PoseHistory:
+    """A bounded history of timestamped planar poses, interpolated at any stamp."""
+
+    def __init__(self, maxlen: int = 4096):
+        self.items: collections.deque = collections.deque(maxlen=maxlen)
+
+    def add(self, stamp_ns: int, pose) -> None:
+        if self.items and stamp_ns < self.items[-1][0]:
+            return  # out of order: the history stays monotonic
+        self.items.append((int(stamp_ns), np.asarray(pose, dtype=float)))
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    @property
+    def latest(self) -> tuple[int, np.ndarray] | None:
+        return self.items[-1] if self.items else None
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """Pose at ``stamp_ns``: linear in x, y and (wrap-aware) theta between neighbours;
+        the end value outside the covered span."""
+        if not self.items:
+            return None
+        t = np.fromiter((s for s, _ in self.items), dtype=np.int64, count=len(self.items))
+        i = int(np.searchsorted(t, stamp_ns))
+        if i == 0:
+            return self.items[0][1].copy()
+        if i >= len(t):
+            return self.items[-1][1].copy()
+        (t0, p0), (t1, p1) = self.items[i - 1], self.items[i]
+        f = (stamp_ns - t0) / max(t1 - t0, 1)
+        d = p1 - p0
+        d[2] = wrap(d[2])
+        out = p0 + f * d
+        out[2] = wrap(out[2])
+        return out
+
+
+class WheelOdometry:
+    """Integrates wheel ticks into an odometry pose with ``mapping.odometry``."""
+
+    def __init__(self, params: dict):
+        from cgamap.mapping.odometry import WheelGeometry
+
+        known = {f.name for f in fields(WheelGeometry)}
+        alias = {"track": "track_width"}
+        kw = {alias.get(k, k): v for k, v in params.items() if alias.get(k, k) in known}
+        self.geom = WheelGeometry(**kw)
+        self.pose = np.zeros(3)
+        self.last: tuple[int, int] | None = None
+
+    def update(self, t: WheelTicks) -> np.ndarray:
+        from cgamap.mapping.odometry import compose_pose2d, ticks_to_increment
+
+        if self.last is not None:
+            inc = ticks_to_increment(t.left - self.last[0], t.right - self.last[1], self.geom)
+            self.pose = compose_pose2d(self.pose, inc)
+        self.last = (t.left, t.right)
+        return self.pose.copy()
+
+
+# -- the 2D mapper adapter ------------------------------------------------------------------
+
+
+class Mapper2D:
+    """``mapping.slam2d.Mapper`` behind a small interface: step, segments, state, set_pose.
+
+    The mapper reports laser poses; this adapter hands base poses to the daemon.  Setting the
+    pose re-anchors the mapper: its next scan starts a new chain at the given pose."""
+
+    def __init__(self, mount: tuple[float, float, float] | None, params: dict):
+        from cgamap.mapping.slam2d import Mapper, MapperParams
+
+        kw = {k: v for k, v in params.items() if k in {f.name for f in fields(MapperParams)}
+              and not is_dataclass(getattr(MapperParams, k, None))}
+        self._make = lambda pose: Mapper(MapperParams(mount=mount, **kw), initial_pose=pose)
+        self.m = self._make((0.0, 0.0, 0.0))
+        self.mount = mount
+        self._pose = np.zeros(3)
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self._pose.copy()
+
+    def _base(self, laser_pose) -> np.ndarray:
+        fn = getattr(self.m, "base_pose", None)
+        if fn is not None:
+            return np.asarray(fn(laser_pose), dtype=float)
+        if self.mount is None:
+            return np.asarray(laser_pose, dtype=float)
+        return compose(laser_pose, relative(self.mount, (0.0, 0.0, 0.0)))
+
+    def step(self, scan: LaserScan, odom) -> tuple[np.ndarray, float | None, int]:
+        res = self.m.step(scan.ranges, scan.angle_min, scan.angle_increment, odom)
+        q = None if res.correction is None else float(res.correction.matched_fraction)
+        self._pose = self._base(res.pose)
+        return self._pose.copy(), q, int(res.segments)
+
+    def segments(self) -> np.ndarray:
+        lm = self.m.map
+        if not len(lm):
+            return np.zeros((0, 4))
+        return np.concatenate([lm.a, lm.b], axis=1)
+
+    def set_pose(self, pose) -> None:
+        self._pose = np.asarray(pose, dtype=float)
+        self.m.initial = self._pose.copy()
+        self.m.last_odom = None
+
+    def state(self) -> dict:
+        lm = self.m.map
+        return {"map": {f.name: getattr(lm, f.name) for f in fields(lm)}, "pose": self._pose}
+
+    def load_state(self, st: dict) -> None:
+        from cgamap.mapping.linemap import LineMap
+
+        names = {f.name for f in fields(LineMap)}
+        self._pose = np.asarray(st["pose"], dtype=float)
+        self.m = self._make(tuple(self._pose))
+        self.m.map = LineMap(**{k: v for k, v in st["map"].items() if k in names})
+
+    def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float] | None:
+        """Global pose of ``scan`` in the map by Hough-domain relocalisation, or None."""
+        try:
+            from cgamap.mapping import relocalize as rl
+        except ImportError:
+            return None
+        from cgamap.mapping.segments import extract_segments
+
+        seg = extract_segments(scan.ranges, scan.angle_min, scan.angle_increment,
+                               self.m.params.segments)
+        fn = getattr(rl, "relocalize_scan", None) or getattr(rl, "relocalize", None)
+        if fn is None or not len(seg) or not len(self.m.map):
+            return None
+        res = fn(seg, self.m.map)
+        if res is None:
+            return None
+        pose = np.asarray(getattr(res, "pose", res), dtype=float)
+        score = float(getattr(res, "score", getattr(res, "quality", 1.0)))
+        return self._base(pose), score
+
+
+# -- the 3D plane map ---------------------------------------------------------------------
+
+
+class PlaneMap:
+    """Planes n.x = rho merged across frames (angle and offset gates, inlier-weighted)."""
+
+    def __init__(self, max_angle_deg: float = 8.0, max_offset: float = 0.15):
+        self.cos_gate = float(np.cos(np.deg2rad(max_angle_deg)))
+        self.max_offset = max_offset
+        self.planes: list[dict] = []
+
+    def integrate(self, detected: list) -> int:
+        changed = 0
+        for p in detected:
+            n, rho, w = np.asarray(p.normal, float), float(p.rho), float(p.inliers)
+            best = None
+            for q in self.planes:
+                if np.dot(n, q["normal"]) > self.cos_gate and abs(rho - q["rho"]) < \
+                        self.max_offset:
+                    best = q
+                    break
+            if best is None:
+                self.planes.append({"normal": n, "rho": rho, "weight": w, "seen": 1,
+                                    "corners": np.asarray(p.corners, float),
+                                    "area": float(p.area)})
+            else:
+                tw = best["weight"] + w
+                nn = best["normal"] * best["weight"] + n * w
+                best["normal"] = nn / np.linalg.norm(nn)
+                best["rho"] = (best["rho"] * best["weight"] + rho * w) / tw
+                best["weight"], best["seen"] = tw, best["seen"] + 1
+                if p.area > best["area"]:
+                    best["corners"], best["area"] = np.asarray(p.corners, float), float(p.area)
+            changed += 1
+        return changed
+
+    def as_list(self) -> list[dict]:
+        from cgamap.cga import hesse_to_hough3d
+
+        out = []
+        for q in self.planes:
+            t, ph, r = hesse_to_hough3d(q["normal"], q["rho"])
+            out.append({"normal": np.round(q["normal"], 5).tolist(), "rho": round(q["rho"], 4),
+                        "hough": [float(t), float(ph), float(r)], "seen": q["seen"],
+                        "area": round(q["area"], 3), "corners": np.round(q["corners"], 4).tolist()})
+        return out
+
+    def state(self) -> list[dict]:
+        return [dict(q) for q in self.planes]
+
+    def load_state(self, st: list[dict]) -> None:
+        self.planes = [{**q, "normal": np.asarray(q["normal"], float),
+                        "corners": np.asarray(q["corners"], float)} for q in st]
+
+
+# -- the loop -------------------------------------------------------------------------------
+
+
+class MappingLoop:
+    """Fuses device messages; ``status()``, ``map_json()``, ``state()`` for the service."""
+
+    def __init__(self, cfg: dict, mapper2d: Any | None = None, devices: dict | None = None):
+        m = cfg["mapping"]
+        self.cfg = cfg
+        self.lost_quality = m["lost_quality"]
+        self.lost_after = m["lost_after"]
+        self.period3d_ns = int(1e9 / m["rate3d"])
+        self.min_travel, self.min_turn = m["min_travel"], m["min_turn"]
+        self.scan_period_ns = int(1e9 / m["scan_max_rate"])
+        devices = devices if devices is not None else cfg["devices"]
+        self.roles = {name: d["role"] for name, d in devices.items()}
+        laser = next((d for d in devices.values() if d["role"] == "laser"), None)
+        mount = None
+        if laser is not None:
+            mt = laser["mount"]
+            mount = (mt["x"], mt["y"], mt["yaw"])
+            if not any(mount):
+                mount = None
+        self.mapper = mapper2d
+        if self.mapper is None and m["map2d"]:
+            try:
+                self.mapper = Mapper2D(mount, m["params2d"])
+            except ImportError as exc:
+                log.warning("2D mapper unavailable (%s): no 2D map", exc)
+        odom_dev = next((d for d in devices.values() if d["role"] == "odometry"), None)
+        self.wheels = None
+        if odom_dev is not None and odom_dev["model"] == "modbus-base":
+            self.wheels = WheelOdometry({**odom_dev["params"], **m["odometry"]})
+        head = next((d for d in devices.values() if d["role"] == "pantilt"), None)
+        self.camera_mount = None
+        if head is not None:
+            eye = head.get("head_T_cam")
+            eye = [r[3] for r in eye[:3]] if eye else head["eye_offset"]
+            self.camera_mount = {"t_axis": tuple(head["axis_point"]), "t_eye": tuple(eye)}
+        self.map3d_enabled = bool(m["map3d"])
+        self.params3d = dict(m["params3d"])
+        self.planes = PlaneMap()
+        self.odom = PoseHistory()
+        self.pantilt: collections.deque = collections.deque(maxlen=256)
+        self.pending: collections.deque = collections.deque(maxlen=64)
+        self.scan_poses = PoseHistory(8192)       # corrected pose per processed scan
+        self.trajectory: collections.deque = collections.deque(maxlen=100_000)
+        self.last_scan_odom: np.ndarray | None = None
+        self.pose = np.zeros(3)
+        self.pose_stamp_ns = 0
+        self.quality: float | None = None
+        self.low_quality_run = 0
+        self.lost = False
+        self.counts = collections.Counter()
+        self.last_3d_ns: int | None = None
+        self.rates: dict[str, collections.deque] = collections.defaultdict(
+            lambda: collections.deque(maxlen=50))
+        self.events: collections.deque = collections.deque(maxlen=256)
+        self.event_seq = 0
+        self.map_version = 0
+        self.timing = {"scan_ms": 0.0, "frame_ms": 0.0}
+        self._last_scan: LaserScan | None = None
+        self.odometry_expected = odom_dev is not None
+
+    # -- inputs ---------------------------------------------------------------------------
+    def handle(self, name: str, msg: Any) -> None:
+        if isinstance(msg, OdometryPose):
+            self.on_odometry(msg.stamp_ns, (msg.x, msg.y, msg.theta))
+        elif isinstance(msg, WheelTicks):
+            if self.wheels is None:
+                self.wheels = WheelOdometry(self.cfg["mapping"]["odometry"])
+            self.on_odometry(msg.stamp_ns, self.wheels.update(msg))
+        elif isinstance(msg, LaserScan):
+            self.counts["scans_in"] += 1
+            self.pending.append(msg)
+        elif isinstance(msg, PanTiltState):
+            self.pantilt.append(msg)
+        elif hasattr(msg, "calib") and hasattr(msg, "stamp_ns"):
+            self.on_frame(msg)
+        self.rates[name].append(time.monotonic())
+
+    def on_odometry(self, stamp_ns: int, pose) -> None:
+        self.counts["odometry"] += 1
+        self.odom.add(stamp_ns, pose)
+
+    def process(self, final: bool = False, odometry_live: bool = True) -> int:
+        """Run the scans whose odometry is in (or that cannot wait longer); returns how many.
+
+        A scan waits until odometry newer than it has arrived, so its guess is interpolated,
+        not extrapolated; it stops waiting when a later scan is queued behind it, when no
+        odometry source is live, or at the end of a replay."""
+        done = 0
+        while self.pending:
+            scan = self.pending[0]
+            latest = self.odom.latest
+            ready = (final or not odometry_live or len(self.pending) > 1
+                     or (latest is not None and latest[0] >= scan.stamp_ns))
+            if not ready:
+                break
+            self.pending.popleft()
+            self.on_scan(scan)
+            done += 1
+        return done
+
+    def odom_guess(self, stamp_ns: int) -> np.ndarray:
+        p = self.odom.at(stamp_ns)
+        return np.zeros(3) if p is None else p
+
+    def on_scan(self, scan: LaserScan) -> None:
+        t0 = time.perf_counter()
+        self._last_scan = scan
+        odom = self.odom_guess(scan.stamp_ns)
+        if self._skip(scan, odom):
+            self.counts["scans_skipped"] += 1
+            return
+        if self.mapper is None:
+            # no 2D mapper: the pose follows odometry alone
+            if self.last_scan_odom is not None:
+                self.pose = compose(self.pose, relative(self.last_scan_odom, odom))
+            q, nseg = None, 0
+        else:
+            self.pose, q, nseg = self.mapper.step(scan, odom)
+        self.last_scan_odom = odom
+        self.pose_stamp_ns = scan.stamp_ns
+        self.scan_poses.add(scan.stamp_ns, self.pose)
+        self.counts["scans"] += 1
+        self.quality = q
+        dev = -1 if scan.device_stamp is None else scan.device_stamp
+        self.trajectory.append((scan.stamp_ns, dev, *map(float, self.pose),
+                                -1.0 if q is None else q))
+        self._track_quality(q, scan)
+        self.map_version += 1
+        self.timing["scan_ms"] = 0.9 * self.timing["scan_ms"] + 100 * (time.perf_counter() - t0)
+        self._event("pose", {"pose": self.pose_list(), "quality": q, "segments": nseg})
+
+    def _skip(self, scan: LaserScan, odom: np.ndarray) -> bool:
+        """Skip a scan taken too soon after the last mapped one, or with no motion since."""
+        if self.last_scan_odom is None or not self.pose_stamp_ns:
+            return False
+        if scan.stamp_ns - self.pose_stamp_ns < self.scan_period_ns:
+            return True
+        if not len(self.odom):
+            return False  # no odometry: motion unknown, map at the rate limit
+        d = relative(self.last_scan_odom, odom)
+        moved = np.hypot(d[0], d[1]) >= self.min_travel or abs(d[2]) >= self.min_turn
+        return not moved and scan.stamp_ns - self.pose_stamp_ns < 20 * self.scan_period_ns
+
+    def _track_quality(self, q: float | None, scan: LaserScan) -> None:
+        if q is None:
+            return
+        if q < self.lost_quality:
+            self.low_quality_run += 1
+        else:
+            self.low_quality_run = 0
+            self.lost = False
+        if self.low_quality_run >= self.lost_after:
+            self.lost = True
+            self.low_quality_run = 0
+            self.counts["lost"] += 1
+            log.warning("match quality below %.2f for %d scans: relocalising",
+                        self.lost_quality, self.lost_after)
+            self.relocalize(scan)
+
+    def relocalize(self, scan: LaserScan | None = None) -> dict:
+        """Relocalise on ``scan`` (default: the last processed one)."""
+        self.counts["relocalize_tries"] += 1
+        if self.mapper is None or not hasattr(self.mapper, "relocalize"):
+            return {"ok": False, "error": "no 2D mapper"}
+        scan = scan or self._last_scan
+        if scan is None:
+            return {"ok": False, "error": "no scan yet"}
+        res = self.mapper.relocalize(scan)
+        if res is None:
+            return {"ok": False, "error": "relocalisation found no pose"}
+        pose, score = res
+        self.set_pose(pose, reason="relocalize")
+        self.counts["relocalized"] += 1
+        return {"ok": True, "pose": self.pose_list(), "score": score}
+
+    def set_pose(self, pose, reason: str = "set-pose") -> None:
+        self.pose = np.asarray(pose, dtype=float)
+        if self.mapper is not None:
+            self.mapper.set_pose(self.pose)
+        latest = self.odom.latest
+        self.last_scan_odom = None if latest is None else latest[1].copy()
+        self.pose_stamp_ns = time.monotonic_ns() if latest is None else latest[0]
+        self.lost = False
+        self._event("pose", {"pose": self.pose_list(), "reason": reason})
+
+    def on_frame(self, frame: Any) -> None:
+        self.counts["frames_in"] += 1
+        if not self.map3d_enabled:
+            return
+        if self.last_3d_ns is not None and frame.stamp_ns - self.last_3d_ns < self.period3d_ns:
+            return
+        self.last_3d_ns = frame.stamp_ns
+        t0 = time.perf_counter()
+        try:
+            from cgamap.drivers.stereo import frame_points_global, nearest_pantilt
+            from cgamap.drivers.stereo_points import CameraMount
+            from cgamap.mapping.planes import PlaneParams, detect_planes
+        except ImportError as exc:
+            log.warning("3D pipeline unavailable: %s", exc)
+            self.map3d_enabled = False
+            return
+        if self.pantilt:
+            frame.pantilt = nearest_pantilt(frame.stamp_ns, list(self.pantilt), 200_000_000)
+        pose = self.pose_at(frame.stamp_ns)
+        mount = CameraMount.from_dict(self.camera_mount) if self.camera_mount else None
+        pts = frame_points_global(frame, mount, tuple(pose),
+                                  max_depth=float(self.params3d.get("max_depth", 8.0)),
+                                  stride=int(self.params3d.get("stride", 4)))
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if len(pts) < 200:
+            return
+        known = {f.name for f in fields(PlaneParams)}
+        prm = PlaneParams(**{k: v for k, v in self.params3d.items() if k in known})
+        planes = detect_planes(pts, self.params3d.get("method", "ransac"), prm)
+        n = self.planes.integrate(planes)
+        self.counts["frames"] += 1
+        self.map_version += 1
+        self.timing["frame_ms"] = 0.8 * self.timing["frame_ms"] + 200 * (time.perf_counter() - t0)
+        self._event("planes", {"detected": len(planes), "merged": n,
+                               "total": len(self.planes.planes)})
+
+    def pose_at(self, stamp_ns: int) -> np.ndarray:
+        """Best pose at ``stamp_ns``: the scan pose before it plus odometry since."""
+        items = self.scan_poses.items
+        if not items:
+            return self.pose.copy()
+        base_stamp, base_pose = items[-1]
+        if stamp_ns < base_stamp:
+            p = self.scan_poses.at(stamp_ns)
+            return p if p is not None else self.pose.copy()
+        o0, o1 = self.odom.at(base_stamp), self.odom.at(stamp_ns)
+        if o0 is None or o1 is None:
+            return base_pose.copy()
+        return compose(base_pose, relative(o0, o1))
+
+    def current_pose(self) -> np.ndarray:
+        """The pose now: last corrected scan pose plus the odometry since that scan."""
+        latest = self.odom.latest
+        if latest is None or self.last_scan_odom is None:
+            return self.pose.copy()
+        return compose(self.pose, relative(self.last_scan_odom, latest[1]))
+
+    def pose_list(self) -> list[float]:
+        return [round(float(v), 5) for v in self.current_pose()]
+
+    # -- outputs --------------------------------------------------------------------------
+    def _event(self, kind: str, body: dict) -> None:
+        self.event_seq += 1
+        self.events.append({"class": kind, "seq": self.event_seq, **body})
+
+    def rate(self, name: str) -> float:
+        d = self.rates.get(name)
+        if not d or len(d) < 2 or time.monotonic() - d[-1] > 5.0:
+            return 0.0
+        return (len(d) - 1) / max(d[-1] - d[0], 1e-6)
+
+    def segments(self) -> np.ndarray:
+        return self.mapper.segments() if self.mapper is not None else np.zeros((0, 4))
+
+    def status(self) -> dict:
+        return {"pose": self.pose_list(), "quality": self.quality, "lost": self.lost,
+                "map": {"segments": len(self.segments()), "planes": len(self.planes.planes),
+                        "version": self.map_version},
+                "counts": dict(self.counts), "pending_scans": len(self.pending),
+                "timing_ms": {k: round(v, 2) for k, v in self.timing.items()}}
+
+    def map_json(self) -> dict:
+        seg = self.segments()
+        return {"frame": "map", "pose": self.pose_list(),
+                "segments": np.round(seg, 4).tolist(), "planes": self.planes.as_list(),
+                "version": self.map_version}
+
+    def state(self) -> dict:
+        return {"pose": self.current_pose(),
+                "map2d": None if self.mapper is None else self.mapper.state(),
+                "map3d": self.planes.state(), "counts": dict(self.counts),
+                "trajectory": np.asarray(list(self.trajectory)[-5000:], dtype=float)
+                if self.trajectory else np.zeros((0, 6))}
+
+    def load_state(self, st: dict) -> None:
+        if st.get("map2d") is not None and self.mapper is not None:
+            self.mapper.load_state(st["map2d"])
+        self.planes.load_state(st.get("map3d") or [])
+        self.pose = np.asarray(st.get("pose", (0, 0, 0)), dtype=float)
+        if self.mapper is not None:
+            self.mapper.set_pose(self.pose)
+        self.last_scan_odom = None

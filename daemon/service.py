@@ -1,0 +1,345 @@
+"""The daemon: wires config, supervisor, mapping loop, store, query server and sd_notify.
+
+The main thread runs the mapping loop and owns time: it drains the device queues, feeds the
+loop, pings the watchdog from the loop itself (a hung loop gets restarted by systemd),
+checkpoints at the configured interval, and handles the signals (SIGTERM/SIGINT: checkpoint
+and exit well within 2 s; SIGHUP: reload what is safe to change while running).  Query
+threads read and change the loop under one lock.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from cgamap.daemon import config as config_mod
+from cgamap.daemon import notify
+from cgamap.daemon.devices import ReplaySource, build_source
+from cgamap.daemon.loop import MappingLoop
+from cgamap.daemon.server import QueryServer, handler_table
+from cgamap.daemon.store import CheckpointStore
+from cgamap.daemon.supervisor import Supervisor
+
+log = logging.getLogger("cgamapd")
+
+LOSSY_ROLES = ("laser", "camera")  # the newest scan/frame matters; odometry never dropped
+
+
+class Daemon:
+    def __init__(self, cfg: dict, config_path: str | None = None, replay: str | None = None,
+                 replay_rate: float = 0.0, state_dir: str | None = None,
+                 socket_path: str | None = None, exit_after_replay: bool = False):
+        self.cfg = cfg
+        self.config_path = config_path
+        self.replay = replay
+        self.replay_rate = replay_rate
+        self.exit_after_replay = exit_after_replay
+        state, sock = config_mod.resolve_paths(cfg)
+        self.state_dir = Path(state_dir) if state_dir else state
+        self.socket_path = Path(socket_path) if socket_path else sock
+        self.lock = threading.RLock()
+        self.stop_event = threading.Event()
+        self.reload_requested = False
+        self.checkpoint_requested = False
+        self.store = CheckpointStore(self.state_dir)
+        self.loop = MappingLoop(cfg)
+        self.supervisor = self._build_supervisor(cfg)
+        self.server: QueryServer | None = None
+        self.started_mono = time.monotonic()
+        self.last_checkpoint_mono = time.monotonic()
+        self.taps: list[collections.deque] = []
+        self.tap_cond = threading.Condition(self.lock)
+        self.loaded_from: str | None = None
+
+    # -- construction -----------------------------------------------------------------------
+    def _build_supervisor(self, cfg: dict) -> Supervisor:
+        sv = cfg["supervisor"]
+        sup = Supervisor(sv["backoff_initial"], sv["backoff_max"])
+        if self.replay:
+            src = Path(self.replay)
+            sup.add("replay", "replay",
+                    lambda: ReplaySource(str(src), roles=(), rate=self.replay_rate),
+                    256, lossy=False)
+            return sup
+        for name, dev in cfg["devices"].items():
+            if not dev["enabled"]:
+                sup.add_disabled(name, dev["role"])
+                continue
+            sup.add(name, dev["role"], build_source(name, dev), dev["queue"] if
+                    dev["role"] in LOSSY_ROLES else max(dev["queue"], 256),
+                    lossy=dev["role"] in LOSSY_ROLES, read_timeout=min(dev["timeout"], 0.5))
+        return sup
+
+    # -- the run ---------------------------------------------------------------------------
+    def run(self) -> int:
+        notify.status("loading checkpoint")
+        self._load_checkpoint()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: self.stop_event.set())
+        signal.signal(signal.SIGHUP, self._on_hup)
+        srv = self.cfg["server"]
+        self.server = QueryServer(self, self.socket_path, srv["socket_mode"],
+                                  (srv["tcp_host"], srv["tcp_port"]) if srv["tcp"] else None,
+                                  srv["max_clients"])
+        try:
+            self.server.start()
+        except (OSError, RuntimeError) as exc:
+            log.error("query socket: %s", exc)
+            return 73  # EX_CANTCREAT
+        notify.status("opening devices")
+        self.supervisor.start()
+        log.info("cgamapd ready: socket %s, state %s, %d devices", self.socket_path,
+                 self.state_dir, len(self.supervisor.workers))
+        notify.ready("mapping")
+        try:
+            self._main_loop()
+        finally:
+            notify.stopping()
+            t0 = time.monotonic()
+            self.server.stop()
+            self.supervisor.stop(timeout=0.6)
+            with self.lock:
+                self._drain()
+                self.loop.process(final=True)
+                self.checkpoint("shutdown")
+            log.info("stopped in %.2f s", time.monotonic() - t0)
+        return 0
+
+    def _main_loop(self) -> None:
+        wd = notify.watchdog_period()
+        next_wd = time.monotonic()
+        next_status = time.monotonic()
+        odometry_names = [n for n, w in self.supervisor.workers.items()
+                          if w.health.role == "odometry"]
+        while not self.stop_event.is_set():
+            self.supervisor.bus.wait(0.05)
+            with self.lock:
+                self._drain()
+                live = self.supervisor.running(odometry_names) if odometry_names else False
+                self.loop.process(odometry_live=live)
+            now = time.monotonic()
+            if wd is not None and now >= next_wd:
+                notify.watchdog()
+                next_wd = now + wd
+            if self.reload_requested:
+                self.reload_requested = False
+                self.reload()
+            if (self.checkpoint_requested
+                    or now - self.last_checkpoint_mono >= self.cfg["checkpoint"]["interval"]):
+                self.checkpoint_requested = False
+                with self.lock:
+                    self.checkpoint("interval")
+            if now >= next_status:
+                next_status = now + 2.0
+                notify.status(self.status_line())
+            if self.replay and self.supervisor.all_finished():
+                with self.lock:
+                    self._drain()
+                    self.loop.process(final=True)
+                if self.exit_after_replay:
+                    log.info("replay finished: %d scans", self.loop.counts["scans"])
+                    return
+
+    def _drain(self) -> None:
+        for name, msg in self.supervisor.bus.drain():
+            self.loop.handle(name, msg)
+            if self.taps:
+                for tap in self.taps:
+                    tap.append((name, msg))
+        if self.taps:
+            self.tap_cond.notify_all()
+
+    def _on_hup(self, *_: Any) -> None:
+        self.reload_requested = True
+
+    def status_line(self) -> str:
+        s = self.loop.status()
+        running = sum(w.health.state == "running" for w in self.supervisor.workers.values())
+        x, y, th = s["pose"]
+        return (f"{running}/{len(self.supervisor.workers)} devices, pose {x:.2f} {y:.2f} "
+                f"{np.degrees(th):.0f}deg, {s['map']['segments']} segments, "
+                f"{s['map']['planes']} planes")
+
+    # -- persistence -------------------------------------------------------------------------
+    def _load_checkpoint(self) -> None:
+        try:
+            payload = self.store.load()
+        except OSError as exc:
+            log.warning("cannot read checkpoints in %s: %s", self.state_dir, exc)
+            return
+        if payload is None:
+            log.info("no checkpoint in %s: starting an empty map", self.state_dir)
+            return
+        try:
+            self.loop.load_state(payload["loop"])
+            self.loaded_from = payload.get("_file")
+            log.info("loaded checkpoint %s", self.loaded_from)
+        except (KeyError, TypeError, ValueError) as exc:
+            log.warning("checkpoint %s does not fit this build (%s): empty map",
+                        payload.get("_file"), exc)
+            self.loop = MappingLoop(self.cfg)
+
+    def checkpoint(self, reason: str) -> dict:
+        try:
+            path = self.store.save({"reason": reason, "loop": self.loop.state(),
+                                    "config": self.config_path})
+        except Exception as exc:  # noqa: BLE001 - a failed checkpoint must not stop mapping
+            log.error("checkpoint failed: %s: %s", type(exc).__name__, exc)
+            return {"class": "error", "error": f"checkpoint failed: {exc}"}
+        finally:
+            self.last_checkpoint_mono = time.monotonic()
+        return {"class": "checkpoint", "path": str(path), "reason": reason,
+                "duration_s": round(self.store.last_save_s or 0.0, 4)}
+
+    # -- SIGHUP ---------------------------------------------------------------------------
+    def reload(self) -> None:
+        """Re-read the config: log level, checkpoint interval, loss thresholds and backoff
+        apply at once; a device whose URL or parameters changed is restarted; added or
+        removed devices and role changes need a restart (logged)."""
+        notify.reloading()
+        if not self.config_path:
+            return
+        try:
+            new = config_mod.load(self.config_path)
+        except config_mod.ConfigError as exc:
+            log.error("reload: %s: %s (keeping the running config)", self.config_path, exc)
+            notify.ready("mapping (reload failed)")
+            return
+        logging.getLogger().setLevel(new["log_level"].upper())
+        with self.lock:
+            self.cfg["checkpoint"] = new["checkpoint"]
+            self.cfg["log_level"] = new["log_level"]
+            self.loop.lost_quality = new["mapping"]["lost_quality"]
+            self.loop.lost_after = new["mapping"]["lost_after"]
+            for w in self.supervisor.workers.values():
+                w.backoff_initial = new["supervisor"]["backoff_initial"]
+                w.backoff_max = new["supervisor"]["backoff_max"]
+            if not self.replay:
+                old_devs, new_devs = self.cfg["devices"], new["devices"]
+                if set(old_devs) != set(new_devs):
+                    log.warning("reload: devices added or removed; restart cgamapd to apply")
+                for name in set(old_devs) & set(new_devs):
+                    o, n = old_devs[name], new_devs[name]
+                    if o == n or name not in self.supervisor.workers:
+                        continue
+                    if o["role"] != n["role"]:
+                        log.warning("reload: %s changed role; restart cgamapd to apply", name)
+                        continue
+                    w = self.supervisor.workers[name]
+                    w.factory = build_source(name, n)
+                    old_devs[name] = n
+                    w.restart()
+                    log.info("reload: restarting device %s with its new settings", name)
+        log.info("configuration reloaded from %s", self.config_path)
+        notify.ready("mapping")
+
+    # -- queries ---------------------------------------------------------------------------
+    def command(self, req: dict) -> dict:
+        fn = handler_table(self).get(req["cmd"])
+        if fn is None:
+            return {"class": "error", "error": f"unknown command {req['cmd']!r}",
+                    "commands": sorted(handler_table(self)) + ["watch"]}
+        try:
+            return fn(req)
+        except (ValueError, TypeError, KeyError) as exc:
+            return {"class": "error", "error": f"{req['cmd']}: {exc}"}
+
+    def cmd_version(self, req: dict) -> dict:
+        from cgamap.daemon.cli import package_version
+
+        return {"class": "version", "release": package_version(), "proto": 1}
+
+    def cmd_status(self, req: dict) -> dict:
+        with self.lock:
+            s = self.loop.status()
+            s["loaded_from"] = self.loaded_from
+        s.update({"class": "status", "uptime_s": round(time.monotonic() - self.started_mono, 2),
+                  "devices": self.supervisor.health(), "replay": self.replay,
+                  "checkpoint": {"saves": self.store.saves, "dir": str(self.state_dir),
+                                 "last_duration_s": self.store.last_save_s,
+                                 "last_saved_at": self.store.last_saved_at,
+                                 "interval_s": self.cfg["checkpoint"]["interval"]}})
+        for d in s["devices"]:
+            d["rate_hz"] = round(self.loop.rate(d["name"]), 2) or d["rate_hz"]
+        return s
+
+    def cmd_map(self, req: dict) -> dict:
+        with self.lock:
+            out = self.loop.map_json()
+        return {"class": "map", **out}
+
+    def cmd_trajectory(self, req: dict) -> dict:
+        with self.lock:
+            traj = list(self.loop.trajectory)
+        cols = ["stamp_ns", "device_stamp", "x", "y", "theta", "quality"]
+        return {"class": "trajectory", "columns": cols, "rows": traj}
+
+    def cmd_relocalize(self, req: dict) -> dict:
+        with self.lock:
+            return {"class": "relocalize", **self.loop.relocalize()}
+
+    def cmd_checkpoint(self, req: dict) -> dict:
+        with self.lock:
+            return self.checkpoint("request")
+
+    def cmd_set_pose(self, req: dict) -> dict:
+        pose = [float(req[k]) for k in ("x", "y", "theta")]
+        if not all(np.isfinite(pose)):
+            raise ValueError("x, y, theta must be finite")
+        with self.lock:
+            self.loop.set_pose(pose)
+            return {"class": "pose", "pose": self.loop.pose_list()}
+
+    def watch(self, req: dict, send, stopping: threading.Event) -> None:
+        """Stream events (pose, planes) and a status every ``interval`` s; with ``raw`` every
+        device message too (as recorded JSON)."""
+        from cgamap.daemon.recording import TOPICS, to_record
+
+        interval = float(req.get("interval", 1.0))
+        raw = bool(req.get("raw", False))
+        tap: collections.deque = collections.deque(maxlen=4096)
+        with self.lock:
+            seq = self.loop.event_seq
+            if raw:
+                self.taps.append(tap)
+        if not send({"class": "watch", "enable": True, "raw": raw}):
+            return
+        next_status = 0.0
+        try:
+            while not stopping.is_set() and not self.stop_event.is_set():
+                with self.lock:
+                    if raw and not tap:
+                        self.tap_cond.wait(0.1)
+                    events = [e for e in self.loop.events if e["seq"] > seq]
+                    msgs = list(tap)
+                    tap.clear()
+                if events:
+                    seq = events[-1]["seq"]
+                for e in events:
+                    if not send(e):
+                        return
+                for name, msg in msgs:
+                    spec = TOPICS.get(type(msg))
+                    if spec is None:
+                        continue
+                    if not send({"class": "raw", "device": name, "topic": spec[0],
+                                 "schema": spec[1], "stamp_ns": msg.stamp_ns,
+                                 "body": to_record(msg)}):
+                        return
+                now = time.monotonic()
+                if now >= next_status:
+                    next_status = now + interval
+                    if not send(self.cmd_status({})):
+                        return
+                if not raw:
+                    time.sleep(0.05)
+        finally:
+            with self.lock:
+                self.taps = [t for t in self.taps if t is not tap]
+
