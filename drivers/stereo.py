@@ -39,7 +39,7 @@ __all__ = [
     "StereoFrame", "StereoGrabber", "StereoCalibration", "SgbmParams", "load_calibration",
     "save_calibration", "rectified_calibration", "points_from_stereo_pair", "frame_points",
     "frame_motor", "frame_points_global", "CameraMount",
-    "nearest_pantilt", "pair_with_pantilt", "open_grabber", "BACKENDS",
+    "nearest_pantilt", "interpolate_pantilt", "pair_with_pantilt", "open_grabber", "BACKENDS",
 ]
 
 
@@ -166,10 +166,35 @@ def nearest_pantilt(stamp_ns: int, states: Sequence[PanTiltState],
     return states[best]
 
 
+def interpolate_pantilt(stamp_ns: int, states: Sequence[PanTiltState],
+                        max_gap_ns: int | None = 100_000_000) -> PanTiltState | None:
+    """Pan and tilt at ``stamp_ns``, linearly interpolated between the two states around it
+    (states sorted by stamp_ns); the nearest state when the stamp is outside their span or
+    the two are more than ``max_gap_ns`` apart; None when none is within ``max_gap_ns``."""
+    near = nearest_pantilt(stamp_ns, states, max_gap_ns)
+    if near is None:
+        return None
+    stamps = [s.stamp_ns for s in states]
+    i = bisect.bisect_right(stamps, stamp_ns)
+    if i == 0 or i == len(states):
+        return near
+    a, b = states[i - 1], states[i]
+    span = b.stamp_ns - a.stamp_ns
+    if span <= 0 or (max_gap_ns is not None and span > max_gap_ns):
+        return near
+    w = (stamp_ns - a.stamp_ns) / span
+    return PanTiltState(seq=near.seq, stamp_ns=stamp_ns, pan=a.pan + w * (b.pan - a.pan),
+                        tilt=a.tilt + w * (b.tilt - a.tilt), moving=a.moving or b.moving,
+                        hardware_error=a.hardware_error | b.hardware_error)
+
+
 def pair_with_pantilt(frame: StereoFrame, states: Sequence[PanTiltState],
-                      max_gap_ns: int | None = 100_000_000) -> StereoFrame:
-    """Attach the nearest pan-tilt state (within ``max_gap_ns``, default 100 ms) to a frame."""
-    frame.pantilt = nearest_pantilt(frame.stamp_ns, states, max_gap_ns)
+                      max_gap_ns: int | None = 100_000_000,
+                      interpolate: bool = False) -> StereoFrame:
+    """Attach the pan-tilt state nearest in time (within ``max_gap_ns``, default 100 ms), or
+    the one interpolated at the frame's stamp, to a frame (None when none is close enough)."""
+    pick = interpolate_pantilt if interpolate else nearest_pantilt
+    frame.pantilt = pick(frame.stamp_ns, states, max_gap_ns)
     return frame
 
 

@@ -9,6 +9,7 @@ from cgamap.drivers.messages import PanTiltState
 from cgamap.drivers.stereo import (
     StereoFrame,
     frame_points,
+    interpolate_pantilt,
     nearest_pantilt,
     pair_with_pantilt,
     points_from_stereo_pair,
@@ -187,6 +188,10 @@ def test_nearest_pantilt():
     f = StereoFrame(seq=0, stamp_ns=71_000_000, calib=rectified_calibration(1, 0, 0, 1),
                     left=np.zeros((2, 2), np.uint8))
     assert pair_with_pantilt(f, states).pantilt.seq == 7
+    assert pair_with_pantilt(f, states, interpolate=True).pantilt.pan == pytest.approx(0.71)
+    assert interpolate_pantilt(-5, states).pan == 0.0
+    assert interpolate_pantilt(10**12, states) is None
+    assert interpolate_pantilt(90_000_000, states).pan == pytest.approx(0.9)
 
 
 # ---------------------------------------------------------------- real pairs
