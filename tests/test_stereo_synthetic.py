@@ -161,3 +161,22 @@ def test_raw_rig_rectified_end_to_end():
     print(f"without R_rect: median {bad:.4f} m")
     assert bad > np.median(dist) * 1.5
     f.calib.R_rect = R1
+
+
+@pytest.mark.parametrize("world,pose,tilt", [("corridor", (3.0, 0.0, 0.0), 0.2),
+                                             ("stairs", (17.0, 0.0, 0.3), 0.15),
+                                             ("room", (1.2, 1.2, 0.5), 0.3)])
+def test_pinhole_fast_path_equals_general_raycast(world, pose, tilt):
+    from cgamap.cga import motor_to_matrix
+    from cgamap.drivers.sim.stereo_render import _pixel_rays, _raycast_pinhole
+
+    g = SyntheticGrabber(world, size=(320, 200), fx=225.0, pose=pose, tilt=tilt)
+    H = motor_to_matrix(g.camera_motor_at(0.0)[0])
+    c = g.calib
+    dirs = _pixel_rays(c.fx, c.fy, c.cx, c.cy, 320, 200) @ H[:3, :3].T
+    t1, i1, a1, b1 = g.scene.raycast(H[:3, 3], dirs)
+    t2, i2, a2, b2 = _raycast_pinhole(g.scene, H[:3, 3], H[:3, :3], c, 320, 200, dirs)
+    assert np.array_equal(i1, i2) and (i1 >= 0).mean() > 0.5
+    hit = i1 >= 0
+    assert np.allclose(t1[hit], t2[hit]) and np.allclose(a1[hit], a2[hit])
+    assert np.allclose(b1[hit], b2[hit])

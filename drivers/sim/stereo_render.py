@@ -94,6 +94,51 @@ def camera_rays(K, D, size: tuple[int, int]) -> np.ndarray:
     return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
 
 
+def _raycast_pinhole(scene: Scene3D, origin: np.ndarray, Rm: np.ndarray,
+                     calib: StereoCalibration, w: int, h: int, dirs: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``Scene3D.raycast`` for a pinhole image, with a depth buffer: a quad wholly in front of
+    the camera is tested only against the pixels of its projected bounding box (a loop over
+    quads, vectorised over pixels); quads reaching behind the camera against all pixels."""
+    d = dirs.reshape(h, w, 3)
+    t_buf = np.full((h, w), np.inf)
+    idx = np.full((h, w), -1, dtype=np.int64)
+    a_buf = np.zeros((h, w))
+    b_buf = np.zeros((h, w))
+    n = scene.normals
+    lu = np.linalg.norm(scene.eu, axis=1)
+    lv = np.linalg.norm(scene.ev, axis=1)
+    for q in range(len(scene)):  # tens of quads; each step is vectorised over its pixels
+        c0 = scene.corner[q]
+        corners = np.stack([c0, c0 + scene.eu[q], c0 + scene.ev[q],
+                            c0 + scene.eu[q] + scene.ev[q]]) - origin
+        cam = corners @ Rm                       # (4, 3) in the optical frame
+        if np.all(cam[:, 2] > 1e-3):
+            u = calib.fx * cam[:, 0] / cam[:, 2] + calib.cx
+            v = calib.fy * cam[:, 1] / cam[:, 2] + calib.cy
+            u0, u1 = max(int(np.floor(u.min())) - 1, 0), min(int(np.ceil(u.max())) + 2, w)
+            v0, v1 = max(int(np.floor(v.min())) - 1, 0), min(int(np.ceil(v.max())) + 2, h)
+            if u0 >= u1 or v0 >= v1:
+                continue
+        elif np.all(cam[:, 2] <= 0):
+            continue                             # wholly behind the camera
+        else:
+            u0, u1, v0, v1 = 0, w, 0, h
+        dd = d[v0:v1, u0:u1]
+        wq = c0 - origin
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (wq @ n[q]) / (dd @ n[q])
+            a = t * (dd @ (scene.eu[q] / lu[q])) - wq @ (scene.eu[q] / lu[q])
+            b = t * (dd @ (scene.ev[q] / lv[q])) - wq @ (scene.ev[q] / lv[q])
+            win = ((t > 1e-6) & (a >= 0) & (a <= lu[q]) & (b >= 0) & (b <= lv[q])
+                   & (t < t_buf[v0:v1, u0:u1]))
+        t_buf[v0:v1, u0:u1][win] = t[win]
+        idx[v0:v1, u0:u1][win] = q
+        a_buf[v0:v1, u0:u1][win] = a[win]
+        b_buf[v0:v1, u0:u1][win] = b[win]
+    return t_buf.ravel(), idx.ravel(), a_buf.ravel(), b_buf.ravel()
+
+
 def render_view(scene: Scene3D, H_GC: np.ndarray, calib: StereoCalibration,
                 size: tuple[int, int], offset: float = 0.0,
                 rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -105,7 +150,10 @@ def render_view(scene: Scene3D, H_GC: np.ndarray, calib: StereoCalibration,
     Rm = H_GC[:3, :3]
     origin = H_GC[:3, 3] + Rm[:, 0] * offset
     dirs = d_c @ Rm.T
-    t, idx, a, b = scene.raycast(origin, dirs)  # t along a z = 1 ray is the depth z
+    if rays is None:  # pinhole: test each quad only against the pixels it can cover
+        t, idx, a, b = _raycast_pinhole(scene, origin, Rm, calib, w, h, dirs)
+    else:
+        t, idx, a, b = scene.raycast(origin, dirs)  # t along a z = 1 ray is the depth z
     # One pixel spans about z/fx metres, more on surfaces seen at a grazing angle.
     n = scene.normals[np.maximum(idx, 0)]
     cosang = np.abs(np.einsum("ij,ij->i", n, dirs)) / np.linalg.norm(dirs, axis=1)
