@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "cgamap.daemon.cmd_base",
     "cgamap.daemon.cmd_mapping",
     "cgamap.daemon.cmd_planes",
+    "cgamap.daemon.cmd_stereo",
     "cgamap.daemon.cmd_daemon",
     "cgamap.calib.cli",
 ]
