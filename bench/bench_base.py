@@ -64,13 +64,15 @@ def _poll_rate(url: str, rate: float, seconds: float) -> dict:
 def _square(time_scale: float = 5.0) -> dict:
     r, b, tpr = 0.05, 0.30, 4096
     twin = ModbusBaseTwin(BaseTwinConfig(wheel_radius=r, track_width=b, ticks_per_rev=tpr,
-                                         script=square_script(1.0, 10.0, r, b, pause=0.3),
                                          time_scale=time_scale))
     twin.start()
     try:
         ticks = []
         with ModbusBase(ModbusBaseConfig(url=twin.url, rate_hz=50.0)) as base:
             end = time.monotonic() + 30.0
+            first = base.read()
+            ticks.append((first.left, first.right))
+            twin.run_script(square_script(1.0, 10.0, r, b, pause=0.3))
             for msg in base.poll():
                 ticks.append((msg.left, msg.right))
                 if twin.script_done() or time.monotonic() > end:

@@ -78,6 +78,7 @@ class ModbusBaseTwin:
         self._cmd = [0.0, 0.0]                # commanded wheel speeds (rad/s)
         self._speed = [0.0, 0.0]              # speeds in the last step
         self._t_sim = 0.0
+        self._script_t0 = 0.0                 # simulated time at which the script started
         self._t_wall: float | None = None
         self._estop = False
         self.fault: str | None = None
@@ -98,6 +99,7 @@ class ModbusBaseTwin:
         script = self.config.script
         if not script:
             return (self._cmd[0], self._cmd[1]), math.inf
+        t -= self._script_t0
         total = sum(seg[0] for seg in script)
         if self.config.loop_script and total > 0:
             t = t % total
@@ -145,6 +147,15 @@ class ModbusBaseTwin:
         with self._lock:
             self._advance()
             return bool(self.config.script) and self._speeds_at(self._t_sim)[1] == math.inf
+
+    def run_script(self, script: list[tuple[float, float, float]], loop: bool = False) -> None:
+        """Start a script of (duration_s, left_rad_s, right_rad_s) segments now (a client that
+        has read the encoders first then sees the whole drive)."""
+        with self._lock:
+            self._advance()
+            self.config.script = list(script)
+            self.config.loop_script = loop
+            self._script_t0 = self._t_sim
 
     def set_speeds(self, left: float, right: float) -> None:
         """Command wheel speeds directly (as the set-point registers do)."""
