@@ -490,9 +490,13 @@ def solve_opencv(base_T_head, cam_T_target, method: str) -> HandEyeResult:
         raise RuntimeError(f"OpenCV {cv2.__version__} lacks calibrateHandEye (use 4.x)")
     H = _as_poses(base_T_head, "base_T_head")
     C = _as_poses(cam_T_target, "cam_T_target")
-    R, t = cv2.calibrateHandEye(
-        list(H[:, :3, :3]), list(H[:, :3, 3:]), list(C[:, :3, :3]), list(C[:, :3, 3:]),
-        method=getattr(cv2, _CV_METHODS[method]))
+    try:
+        R, t = cv2.calibrateHandEye(
+            list(H[:, :3, :3]), list(H[:, :3, 3:]), list(C[:, :3, :3]), list(C[:, :3, 3:]),
+            method=getattr(cv2, _CV_METHODS[method]))
+    except cv2.error as exc:
+        msg = str(exc).strip().splitlines()[-1].split(") ", 1)[-1]
+        raise RuntimeError(f"OpenCV's {method} method failed on these pairs: {msg}") from None
     X = make_pose(np.asarray(R), np.asarray(t).reshape(3))
     res, _ = _residuals(X, _mean_pose(H @ X @ C), H, C)
     return HandEyeResult(
