@@ -40,6 +40,13 @@ def register(subparsers) -> None:
     p.add_argument("--max-depth", type=float, default=10.0,
                    help="stereo: drop points farther than this, m")
     p.add_argument("--seed", type=int, default=0, help="random seed (results repeat)")
+    p.add_argument("--configurations", action="store_true",
+                   help="also report corridors, stairways, doorways, workplaces")
+    p.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
+                   help="the up direction in the cloud's frame (default 0 0 1 for files, "
+                        "0 -1 0 for stereo: the OpenCV camera frame)")
+    p.add_argument("--ply", metavar="OUT", help="write the planes as PLY quads")
+    p.add_argument("--hough-png", metavar="OUT", help="write the theta-phi view of the planes")
     p.set_defaults(func=run)
 
 
@@ -102,10 +109,21 @@ def run(args) -> int:
                       min_inliers=args.min_inliers, max_planes=args.max_planes)
     planes = detect_planes(pts, args.method, prm, seed=args.seed)
     t2 = time.perf_counter()
+    configs = []
+    if args.configurations:
+        from cgamap.mapping.configurations import find_configurations
+
+        up = args.up or ((0.0, 0.0, 1.0) if args.cloud else (0.0, -1.0, 0.0))
+        if not np.linalg.norm(up) > 0:
+            raise UsageError("--up: must not be the zero vector")
+        configs = find_configurations(planes, up=up)
+    _exports(args, planes)
     if args.json:
         out = {"planes": [p.to_dict() for p in planes], "points": int(len(pts)),
                "method": args.method,
                "seconds": {"load": round(t1 - t0, 4), "detect": round(t2 - t1, 4)}}
+        if args.configurations:
+            out["configurations"] = [c.to_dict() for c in configs]
         json.dump(out, sys.stdout)
         sys.stdout.write("\n")
         return 0
@@ -116,4 +134,32 @@ def run(args) -> int:
         print(f"{i:2d}  n=({n[0]:+.4f} {n[1]:+.4f} {n[2]:+.4f})  rho={p.rho:.4f} m  "
               f"theta={np.degrees(t):6.2f} phi={np.degrees(ph):7.2f} deg  inliers={p.inliers}  "
               f"rms={1000 * p.rms:.1f} mm  area={p.area:.2f} m2")
+    for c in configs:
+        shown = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in c.params.items()
+                 if k not in ("corners",) and not isinstance(v, list)}
+        print(f"{c.kind}: planes {c.planes} {shown}")
     return 0
+
+
+def _exports(args, planes) -> None:
+    if not (args.ply or args.hough_png):
+        return
+    from cgamap.mapping.planemap import PlaneMap
+
+    pm = PlaneMap()
+    pm.planes = []
+    for p in planes:  # one map plane per detected plane, no merging
+        pm._add(_as_map_plane(p))
+    try:
+        if args.ply:
+            pm.save_ply(args.ply)
+        if args.hough_png:
+            pm.save_hough_png(args.hough_png)
+    except OSError as exc:
+        raise UsageError(f"export: {exc}") from None
+
+
+def _as_map_plane(p):
+    from cgamap.mapping.planemap import MapPlane
+
+    return MapPlane(p.normal, p.rho, p.extent, inliers=p.inliers, corners=p.corners)

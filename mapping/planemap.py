@@ -238,6 +238,21 @@ class PlaneMap:
                 "merge_rule": {"angle_tol": self.rule.angle_tol, "rho_tol": self.rule.rho_tol,
                                "gap": self.rule.gap}}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> PlaneMap:
+        """Rebuild a map written by ``to_dict`` (checkpoints, JSON exports)."""
+        rule = MergeRule(**d.get("merge_rule", {}))
+        pm = cls(rule)
+        for q in d.get("planes", []):
+            mp = MapPlane(np.asarray(q["normal"], float), float(q["rho"]),
+                          np.asarray(q["extent"], float), inliers=int(q.get("inliers", 0)),
+                          observations=int(q.get("observations", 1)),
+                          kind=q.get("kind", "plane"), id=int(q.get("id", -1)),
+                          corners=np.asarray(q["corners"], float) if "corners" in q else None)
+            pm.planes.append(mp)
+        pm._next_id = max((p.id for p in pm.planes), default=-1) + 1
+        return pm
+
     def save_json(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1))
 

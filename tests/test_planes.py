@@ -275,3 +275,20 @@ def test_cli_text_and_errors(tmp_path, capsys):
     assert cli_main(["planes", "--stereo", "l.png", "r.png"]) == 2
     assert "--calib" in capsys.readouterr().err
     assert cli_main(["planes", "--cloud", str(tmp_path / "c.pcd"), "--threshold", "0"]) == 2
+
+
+def test_cli_configurations_and_exports(tmp_path, capsys):
+    pts, _ = scenes.doorway(seed=2)
+    np.save(tmp_path / "d.npy", pts)
+    args = ["planes", "--cloud", str(tmp_path / "d.npy"), "--configurations",
+            "--ply", str(tmp_path / "p.ply"), "--hough-png", str(tmp_path / "h.png")]
+    assert cli_main(args + ["--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [c["kind"] for c in out["configurations"]] == ["doorway"]
+    assert out["configurations"][0]["params"]["width"] == pytest.approx(0.9, abs=0.05)
+    assert read_ply(tmp_path / "p.ply").shape == (4 * len(out["planes"]), 3)
+    assert (tmp_path / "h.png").stat().st_size > 1000
+    assert cli_main(args) == 0
+    assert "doorway: planes" in capsys.readouterr().out
+    assert cli_main(args[:3] + ["--ply", str(tmp_path / "no" / "p.ply")]) == 2
+    assert "export" in capsys.readouterr().err

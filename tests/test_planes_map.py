@@ -94,6 +94,11 @@ def test_virtual_walls_and_exports(tmp_path):
     doc = json.loads((tmp_path / "m.json").read_text())
     assert [p["kind"] for p in doc["planes"]].count("wall") == 2
     assert len(doc["planes"][0]["cga"]) == 32
+    again = PlaneMap.from_dict(doc)
+    assert [p.id for p in again.planes] == [p.id for p in pm.planes]
+    for a, b in zip(again.planes, pm.planes, strict=True):
+        np.testing.assert_allclose(a.corners, b.corners, atol=1e-4)
+        assert a.kind == b.kind and a.rho == pytest.approx(b.rho, abs=1e-6)
     pm.save_hough_png(tmp_path / "h.png")
     img = cv2.imread(str(tmp_path / "h.png"))
     assert img.shape == (400, 720, 3)
