@@ -11,8 +11,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="one JSON object instead of a table")
     p.set_defaults(func=run)
-    d = sub.add_parser("demo", help="the main job (for now: the self-check)")
-    d.set_defaults(func=run, seed=0, json=False)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -104,21 +104,15 @@ def _modbus(dev: dict) -> Callable[[], Any]:
 
 def _pantilt(dev: dict) -> Callable[[], Any]:
     def make():
-        # the pan-tilt driver lands separately; until then this device reports the import error
-        from cgamap.drivers import pantilt
+        from cgamap.drivers.pantilt import PanTilt, PanTiltConfig
 
-        cls = getattr(pantilt, "PanTilt", None) or pantilt.PanTiltDriver
-        return cls(driver_url(dev["url"]), **dev["params"])
+        return PanTilt(PanTiltConfig.from_dict({**dev["params"], "url": dev["url"]}))
 
     return make
 
 
 def _pantilt_read(d: Any, timeout: float):
-    for name in ("read_state", "read", "state"):
-        fn = getattr(d, name, None)
-        if callable(fn):
-            return fn()
-    raise RuntimeError("pan-tilt driver has no read method")
+    return d.read_state()
 
 
 class SimClockGrabber:
@@ -165,7 +159,7 @@ def build_source(name: str, dev: dict) -> Callable[[], Any]:
     """A factory of fresh sources for one configured device (called on every (re)start)."""
     model, url = dev["model"], dev["url"]
     scheme = urlsplit(url).scheme
-    if scheme == "sim":
+    if scheme == "sim" and not (dev["role"] == "camera" and model in ("sim-stereo", "synthetic")):
         def unresolved():
             raise RuntimeError(f"{url}: a sim:// URL is resolved by `cgamap demo` "
                                "(start the twin and give its pty or host:port)")

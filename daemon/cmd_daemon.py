@@ -1,0 +1,288 @@
+"""CLI of the running daemon: ``cgamap status|watch|map export|record|demo`` and the socket
+mode of ``cgamap relocalize``.
+
+The socket is ``--socket``, else $CGAMAP_SOCKET, else /run/cgamap/cgamapd.sock (systemd's
+RuntimeDirectory).  ``cgamap record`` writes the daemon's device messages (a raw ``watch``)
+to MCAP; with ``--config`` it opens the devices itself (when no daemon runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from cgamap.daemon.cli import UsageError
+from cgamap.daemon.export import FORMATS
+
+DEFAULT_SOCKET = "/run/cgamap/cgamapd.sock"
+
+
+def socket_path(args: argparse.Namespace) -> str:
+    return getattr(args, "socket", None) or os.environ.get("CGAMAP_SOCKET") or DEFAULT_SOCKET
+
+
+def _ask(args: argparse.Namespace, cmd: str, **kw) -> dict:
+    from cgamap.daemon.server import DaemonUnavailable, request
+
+    try:
+        reply = request(socket_path(args), cmd, **kw)
+    except DaemonUnavailable as exc:
+        raise UsageError(f"{cmd}: {exc}", code=69) from None  # EX_UNAVAILABLE
+    if reply.get("class") == "error":
+        raise UsageError(f"{cmd}: {reply['error']}", code=1)
+    return reply
+
+
+def _add_socket(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--socket", help=f"daemon socket (default $CGAMAP_SOCKET or {DEFAULT_SOCKET})")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("status", help="the daemon's devices, pose and maps")
+    _add_socket(p)
+    p.add_argument("--json", action="store_true", help="the raw JSON reply")
+    p.set_defaults(func=run_status)
+
+    p = sub.add_parser("watch", help="stream the daemon's poses and map changes (JSON lines)")
+    _add_socket(p)
+    p.add_argument("--raw", action="store_true", help="also every device message")
+    p.add_argument("--count", type=int, default=0, help="stop after this many lines (0: never)")
+    p.add_argument("--interval", type=float, default=1.0, help="status every N s")
+    p.set_defaults(func=run_watch)
+
+    map_group = _map_group(sub)
+    p = map_group.add_parser("export", help="write the daemon's map (png, pgm+yaml, ply, json)")
+    _add_socket(p)
+    p.add_argument("--format", "-f", choices=FORMATS, required=True)
+    p.add_argument("--output", "-o", help="file (default: map.<format>)")
+    p.add_argument("--resolution", type=float, default=None, help="m per pixel (png, pgm)")
+    p.set_defaults(func=run_map_export)
+
+    if "relocalize" not in sub.choices:
+        p = sub.add_parser("relocalize", help="ask the daemon to relocalise the robot")
+        _add_socket(p)
+        p.set_defaults(func=relocalize_via_daemon)
+
+    p = sub.add_parser("set-pose", help="tell the daemon where the robot is (x y theta_deg)")
+    _add_socket(p)
+    p.add_argument("x", type=float)
+    p.add_argument("y", type=float)
+    p.add_argument("theta_deg", type=float)
+    p.set_defaults(func=run_set_pose)
+
+    p = sub.add_parser("checkpoint", help="ask the daemon to write a checkpoint now")
+    _add_socket(p)
+    p.set_defaults(func=lambda a: _print(_ask(a, "checkpoint")))
+
+    p = sub.add_parser("record", help="record every device's messages to an MCAP file")
+    _add_socket(p)
+    p.add_argument("output", help="MCAP file to write")
+    p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
+    p.add_argument("--config", help="open the devices of this config directly (no daemon)")
+    p.set_defaults(func=run_record)
+
+    if "demo" not in sub.choices:
+        p = sub.add_parser("demo", help="the simulated robot end to end: twins, cgamapd, maps")
+        p.add_argument("--duration", type=float, default=None, help="seconds of driving")
+        p.add_argument("--out", default="out", help="output folder (default: out/)")
+        p.add_argument("--config", help="simulated robot config (default: config/sim.yaml)")
+        p.add_argument("--world", help="simulated world (default: from the config)")
+        p.add_argument("--no-camera", action="store_true", help="2D only (faster)")
+        p.set_defaults(func=run_demo)
+
+
+def _map_group(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """The ``map`` group of cmd_mapping (MAP_SUBPARSERS), else one of our own."""
+    mod = sys.modules.get("cgamap.daemon.cmd_mapping")
+    group = getattr(mod, "MAP_SUBPARSERS", None)
+    if group is not None:
+        return group
+    if "map" in sub.choices:
+        parser = sub.choices["map"]
+        for action in parser._actions:  # noqa: SLF001 - argparse keeps them nowhere else
+            if isinstance(action, argparse._SubParsersAction):
+                return action
+    p = sub.add_parser("map", help="maps")
+    return p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
+
+
+def _print(obj: dict) -> int:
+    print(json.dumps(obj, indent=1))
+    return 0
+
+
+def run_status(args: argparse.Namespace) -> int:
+    st = _ask(args, "status")
+    if args.json:
+        return _print(st)
+    x, y, th = st["pose"]
+    q = st.get("quality")
+    print(f"pose        {x:.3f} {y:.3f} {math.degrees(th):.1f} deg   match quality "
+          f"{'-' if q is None else f'{q:.2f}'}{'  LOST' if st.get('lost') else ''}")
+    print(f"map         {st['map']['segments']} segments, {st['map']['planes']} planes "
+          f"(version {st['map']['version']})")
+    c = st["counts"]
+    print(f"scans       {c.get('scans', 0)} mapped, {c.get('scans_skipped', 0)} skipped "
+          f"(standing), {c.get('scans_in', 0)} received; frames {c.get('frames', 0)}")
+    ck = st["checkpoint"]
+    print(f"checkpoint  {ck['saves']} saves to {ck['dir']} every {ck['interval_s']:g} s")
+    print(f"{'device':10s} {'state':9s} {'rate':>7s} {'age':>7s} {'restarts':>8s} "
+          f"{'dropped':>7s}  errors")
+    for d in st["devices"]:
+        age = d.get("last_message_age_s")
+        errs = {k: v for k, v in (d.get("errors") or {}).items() if v}
+        print(f"{d['name']:10s} {d['state']:9s} {d['rate_hz']:6.1f}/s "
+              f"{'-' if age is None else f'{age:6.2f}s':>7s} {d['restarts']:8d} "
+              f"{d.get('queue', {}).get('dropped', 0):7d}  "
+              f"{errs or ''}{'  ' + d['last_error'] if d.get('last_error') else ''}")
+    return 0
+
+
+def run_watch(args: argparse.Namespace) -> int:
+    from cgamap.daemon.server import DaemonUnavailable, stream
+
+    n = 0
+    try:
+        for obj in stream(socket_path(args), timeout=None, raw=args.raw,
+                          interval=args.interval):
+            print(json.dumps(obj, separators=(",", ":")), flush=True)
+            n += 1
+            if args.count and n >= args.count:
+                break
+    except DaemonUnavailable as exc:
+        raise UsageError(f"watch: {exc}", code=69) from None
+    except BrokenPipeError:
+        pass
+    return 0
+
+
+def run_map_export(args: argparse.Namespace) -> int:
+    from cgamap.daemon.export import export
+
+    reply = _ask(args, "map")
+    out = Path(args.output or f"map.{args.format}")
+    kw = {}
+    if args.resolution:
+        if args.format == "png":
+            kw["resolution"] = args.resolution
+    files = export(reply, args.format, out, **kw)
+    print(" ".join(str(f) for f in files))
+    return 0
+
+
+def relocalize_via_daemon(args: argparse.Namespace) -> int:
+    """Socket mode of ``cgamap relocalize``: the daemon relocalises on its latest scan.
+    ``cmd_mapping`` calls this when neither --map nor --log is given."""
+    reply = _ask(args, "relocalize")
+    if not reply.get("ok"):
+        raise UsageError(f"relocalize: {reply.get('error', 'failed')}", code=1)
+    x, y, th = reply["pose"]
+    print(f"relocalised: {x:.3f} {y:.3f} {math.degrees(th):.1f} deg "
+          f"(score {reply.get('score', 0):.2f})")
+    return 0
+
+
+def run_set_pose(args: argparse.Namespace) -> int:
+    reply = _ask(args, "set-pose", x=args.x, y=args.y, theta=math.radians(args.theta_deg))
+    x, y, th = reply["pose"]
+    print(f"pose set: {x:.3f} {y:.3f} {math.degrees(th):.1f} deg")
+    return 0
+
+
+def run_record(args: argparse.Namespace) -> int:
+    from cgamap.daemon.recording import McapRecorder
+
+    out = Path(args.output)
+    stop = threading.Event()
+    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    deadline = time.monotonic() + args.duration if args.duration > 0 else math.inf
+    try:
+        with open(out, "wb") as f:
+            rec = McapRecorder(f)
+            try:
+                if args.config:
+                    _record_devices(args.config, rec, stop, deadline)
+                else:
+                    _record_daemon(args, rec, stop, deadline)
+            finally:
+                rec.finish()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    print(f"{out}: {rec.count} messages")
+    return 0
+
+
+def _record_daemon(args, rec, stop: threading.Event, deadline: float) -> None:
+    from cgamap.daemon.server import DaemonUnavailable, connect
+
+    try:
+        s = connect(socket_path(args), timeout=1.0)
+    except DaemonUnavailable as exc:
+        raise UsageError(f"record: {exc} (or give --config to open the devices)", 69) \
+            from None
+    with s:
+        s.sendall(b'{"cmd": "watch", "raw": true, "interval": 5}\n')
+        f = s.makefile("rb")
+        while not stop.is_set() and time.monotonic() < deadline:
+            try:
+                line = f.readline()
+            except TimeoutError:
+                continue
+            if not line:
+                break
+            obj = json.loads(line)
+            if obj.get("class") == "raw":
+                rec.write_json(obj["topic"], obj["schema"], obj["body"], obj["stamp_ns"])
+            elif obj.get("class") == "pose" and obj.get("pose"):
+                rec.write_pose(time.monotonic_ns(), *obj["pose"])
+
+
+def _record_devices(config_path: str, rec, stop: threading.Event, deadline: float) -> None:
+    from cgamap.daemon import config as config_mod
+    from cgamap.daemon.devices import build_source
+    from cgamap.daemon.supervisor import Supervisor
+
+    try:
+        cfg = config_mod.load(config_path)
+    except config_mod.ConfigError as exc:
+        raise UsageError(f"record: {config_path}: {exc}", config_mod.EX_CONFIG) from None
+    sup = Supervisor(cfg["supervisor"]["backoff_initial"], cfg["supervisor"]["backoff_max"])
+    for name, dev in cfg["devices"].items():
+        if dev["enabled"] and dev["role"] != "camera":
+            sup.add(name, dev["role"], build_source(name, dev), 1024, lossy=False)
+    sup.start()
+    try:
+        while not stop.is_set() and time.monotonic() < deadline:
+            sup.bus.wait(0.1)
+            for _name, msg in sup.bus.drain():
+                rec.write(msg)
+    finally:
+        sup.stop()
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    from cgamap.daemon import config as config_mod
+    from cgamap.daemon.demo import default_config
+    from cgamap.daemon.demo import run_demo as demo
+
+    cfg_path = Path(args.config) if args.config else default_config()
+    try:
+        duration = args.duration or float(config_mod.load(cfg_path)["sim"].get("duration", 60))
+    except config_mod.ConfigError as exc:
+        raise UsageError(f"demo: {cfg_path}: {exc}", config_mod.EX_CONFIG) from None
+    out = Path(args.out)
+    report = demo(out, duration, cfg_path, args.world, camera=not args.no_camera)
+    t = report.get("truth", {})
+    print(f"\npose error vs truth: ATE {t.get('ate_trans_m', float('nan')):.3f} m / "
+          f"{t.get('ate_rot_deg', float('nan')):.2f} deg over {t.get('path_length_m', 0):.1f} m"
+          f"; {report['segments']} segments, {report['planes']} planes")
+    print(f"wrote {out / 'map.png'}, {out / 'map3d.ply'}, {out / 'report.md'}")
+    return 0 if report.get("daemon_exit") == 0 and report.get("checkpoint_ok") else 1
