@@ -365,6 +365,9 @@ class ScipParser:
             is_scan = st == (b"99" if continuous else b"00")
             blk = _Block(echo=m.group(0), status=st, scan=is_scan, cmd=cmd,
                          bodyless=not is_scan)
+            if st == b"99" and not is_scan:       # 99 on a G* command: not SCIP
+                blk.bad = True
+                self.errors.framing += 1
             blk.start, blk.end = int(m.group(2)), int(m.group(3))
             blk.cluster = max(1, int(m.group(4)))
             if continuous:
