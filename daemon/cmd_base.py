@@ -74,14 +74,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 # -- odom -------------------------------------------------------------------------------------
 
 def run_odom(args: argparse.Namespace) -> int:
-    import numpy as np
     from cgamap.drivers.modbus_base import ModbusBase, ModbusBaseConfig, ModbusBaseError
-    from cgamap.mapping.odometry import (
-        WheelGeometry,
-        compose_pose2d,
-        ticks_to_increment,
-        velocities,
-    )
+    from cgamap.mapping.odometry import OdometryIntegrator, WheelGeometry
 
     if args.rate <= 0 or args.count < 0 or args.every < 1:
         raise UsageError("odom: --rate must be > 0, --count >= 0, --every >= 1")
@@ -93,22 +87,15 @@ def run_odom(args: argparse.Namespace) -> int:
         base = ModbusBase(cfg).open()
     except ModbusBaseError as exc:
         raise UsageError(f"odom: {exc}", 1) from None
-    pose = np.zeros(3)
-    prev = None
+    odo = OdometryIntegrator(geom)
     printed = 0
     try:
         for k, msg in enumerate(base.poll(max_silence_s=args.timeout)):
-            v = w = 0.0
-            if prev is not None:
-                inc = ticks_to_increment(msg.left - prev.left, msg.right - prev.right, geom)
-                pose = compose_pose2d(pose, inc)
-                dt = (msg.stamp_ns - prev.stamp_ns) * 1e-9
-                if dt > 0:
-                    v, w = (float(a) for a in velocities(inc, dt))
-            prev = msg
+            odo.update(msg.left, msg.right, msg.stamp_ns)
             if k % args.every:
                 continue
-            x, y, th = (float(a) for a in pose)
+            x, y, th = (float(a) for a in odo.pose)
+            v, w = odo.v, odo.w
             if args.json:
                 print(json.dumps({"seq": msg.seq, "stamp_ns": msg.stamp_ns, "x": round(x, 6),
                                   "y": round(y, 6), "theta": round(th, 6), "v": round(v, 6),

@@ -23,7 +23,8 @@ reads modulo 2^bits (so the base must not move more than half the counter range 
 polls: 2^31 ticks at 32 bits, 32768 at 16 bits).
 
 URLs: ``tcp://host:port`` (Modbus TCP), ``rtu+tcp://host:port`` (RTU framing over TCP),
-``serial:///dev/ttyUSB0`` or a plain path (RTU on a serial port or pty); query options
+``serial:///dev/ttyUSB0`` or a plain path (RTU on a serial port or pty), bare ``host:port``
+(Modbus TCP); query options
 ``unit=`` / ``device_id=`` (default 1), ``baudrate=`` / ``baud=`` (default 115200).
 
 Polling runs on absolute deadlines ``t0 + k / rate``: a slow read delays one sample, not all the
@@ -38,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import select
 import time
 from collections.abc import Iterator, Sequence
@@ -204,6 +206,8 @@ class ModbusBaseError(Exception):
 
 def _parse_url(url: str) -> tuple[str, str, int | None, dict[str, str]]:
     """(kind, host or path, port, options) with kind tcp, rtu+tcp or rtu."""
+    if "://" not in url and re.fullmatch(r"[\w.\-]+:\d+(\?.*)?", url):
+        url = "tcp://" + url      # bare host:port, as `cgamap sim-device modbus-base` prints
     parts = urlsplit(url)
     opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
     if parts.scheme in ("tcp", "modbus+tcp", "rtu+tcp", "socket"):

@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
@@ -173,7 +173,9 @@ def _make_port_class():
 class PanTilt:
     """The head.  ``open()`` checks the servos; use as a context manager."""
 
-    def __init__(self, config: PanTiltConfig) -> None:
+    def __init__(self, config: PanTiltConfig | str, **params: Any) -> None:
+        if isinstance(config, str):   # url plus config keys (the daemon's device params)
+            config = PanTiltConfig.from_dict({**params, "url": config})
         self.config = config
         self.errors = ErrorCounters()
         self.models: dict[int, int] = {}
@@ -367,6 +369,32 @@ class PanTilt:
                             tilt=self.config.tilt.to_rad(pos(tilt_id)),
                             moving=bool(data[pan_id][0] or data[tilt_id][0]),
                             hardware_error=packed, errors=self.errors.as_dict())
+
+    def poll(self, rate_hz: float = 20.0, count: int | None = None,
+             stop: Any | None = None) -> Iterator[PanTiltState]:
+        """read_state at ``rate_hz`` on absolute deadlines (missed slots skipped and counted as
+        ``dropped``); yields each successful read.  ``stop``: a threading.Event."""
+        period = 1.0 / rate_hz
+        t0 = time.monotonic()
+        k = got = 0
+        while count is None or got < count:
+            if stop is not None and stop.is_set():
+                return
+            st = self.read_state()
+            if st is not None:
+                got += 1
+                yield st
+            k += 1
+            late = math.floor((time.monotonic() - t0) / period) - k + 1
+            if late > 0:
+                self.errors.dropped += late
+                k += late
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                if stop is not None:
+                    stop.wait(delay)
+                else:
+                    time.sleep(delay)
 
     def wait_until_reached(self, pan: float, tilt: float, tol: float = 0.01,
                            timeout: float = 10.0, period: float = 0.02) -> PanTiltState | None:

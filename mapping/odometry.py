@@ -48,7 +48,7 @@ __all__ = [
     "WheelGeometry", "OdometryNoise", "ODOM_NOISE_PRESETS", "wrap_angle", "ticks_to_wheel_distance",
     "wheel_distance_to_increment", "ticks_to_increment", "integrate_increments", "planar_motor",
     "pose_increments", "compose_pose2d", "compose_motor", "integrate_motor", "motor_pose2d",
-    "velocities",
+    "velocities", "OdometryIntegrator",
     "add_odometry_noise",
 ]
 
@@ -208,6 +208,38 @@ def velocities(inc, dt) -> tuple[np.ndarray, np.ndarray]:
     arc = np.where(small, chord, chord * half / np.sin(half))
     dt = np.asarray(dt, dtype=float)
     return arc / dt, dth / dt
+
+
+class OdometryIntegrator:
+    """Running dead reckoning from unwrapped encoder counts (e.g. drivers' WheelTicks).
+
+    ``update(left, right, stamp_ns)`` returns the step's increment and keeps the pose both as
+    (x, y, theta) and as the motor ``M_OB`` (odometry frame <- base), plus velocities."""
+
+    def __init__(self, geom: WheelGeometry, start=(0.0, 0.0, 0.0)) -> None:
+        self.geom = geom
+        self.pose = np.asarray(start, dtype=float).copy()
+        self.v = 0.0
+        self.w = 0.0
+        self._prev: tuple[int, int, int] | None = None
+
+    def update(self, left: int, right: int, stamp_ns: int) -> np.ndarray:
+        """Fold in one reading; returns the increment (dx, dy, dtheta) since the last one."""
+        inc = np.zeros(3)
+        if self._prev is not None:
+            pl, pr, pt = self._prev
+            inc = ticks_to_increment(left - pl, right - pr, self.geom)
+            self.pose = compose_pose2d(self.pose, inc)
+            dt = (stamp_ns - pt) * 1e-9
+            if dt > 0:
+                v, w = velocities(inc, dt)
+                self.v, self.w = float(v), float(w)
+        self._prev = (int(left), int(right), int(stamp_ns))
+        return inc
+
+    @property
+    def motor(self) -> Multivector:
+        return planar_motor(*self.pose)
 
 
 def add_odometry_noise(poses, preset: str | OdometryNoise = "high", seed: int = 0) -> np.ndarray:

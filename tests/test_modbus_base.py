@@ -95,6 +95,10 @@ def test_url_options():
     assert b.device_id == 7
     b = ModbusBase(ModbusBaseConfig(url="serial:///dev/ttyUSB0?baudrate=57600"))
     assert b.baudrate == 57600
+    b = ModbusBase(ModbusBaseConfig(url="127.0.0.1:5020"))
+    assert (b._kind, b._where, b._port) == ("tcp", "127.0.0.1", 5020)
+    b = ModbusBase(ModbusBaseConfig(url="/dev/pts/7"))
+    assert (b._kind, b._where) == ("rtu", "/dev/pts/7")
     with pytest.raises(ModbusBaseError, match="unsupported scheme"):
         ModbusBase(ModbusBaseConfig(url="http://x"))
 

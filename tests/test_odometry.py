@@ -7,6 +7,7 @@ import pytest
 from cgamap.cga import motor_from_pose2d
 from cgamap.mapping.odometry import (
     ODOM_NOISE_PRESETS,
+    OdometryIntegrator,
     WheelGeometry,
     add_odometry_noise,
     compose_motor,
@@ -137,3 +138,18 @@ def test_high_preset_matches_design_figures():
 def test_unknown_preset_is_clear():
     with pytest.raises(ValueError, match="preset 'medium'"):
         add_odometry_noise(np.zeros((3, 3)), "medium", 0)
+
+
+def test_integrator_matches_batch_and_motor():
+    rng = np.random.default_rng(3)
+    ticks = np.cumsum(rng.integers(-50, 400, size=(30, 2)), axis=0)
+    stamps = np.arange(30) * 20_000_000
+    odo = OdometryIntegrator(GEOM)
+    for (l, r), t in zip(ticks, stamps, strict=True):
+        odo.update(l, r, t)
+    batch = integrate_increments(ticks_to_increment(np.diff(ticks[:, 0]), np.diff(ticks[:, 1]),
+                                                    GEOM))[-1]
+    assert np.allclose(odo.pose, batch)
+    assert np.allclose(motor_pose2d(odo.motor), odo.pose, atol=1e-9)
+    last = ticks_to_increment(*(ticks[-1] - ticks[-2]), GEOM)
+    assert odo.w == pytest.approx(last[2] / 0.02)

@@ -88,6 +88,14 @@ def test_open_checks_ping_and_model(twin):
         PanTilt(PanTiltConfig(url=twin.path, models=(1020,))).open()
 
 
+def test_constructed_from_url_and_params(twin):
+    h = PanTilt(twin.path, pan={"id": 1, "min_rad": -1.0, "max_rad": 1.0}, rate=20.0)
+    with h.open():
+        assert h.config.pan.max_rad == 1.0 and h.ids == (1, 2)
+        with pytest.raises(PanTiltLimitError):
+            h.move(1.5, 0.0)
+
+
 def test_moves_reach_goals(twin):
     with head(twin) as h:
         assert h.torque(True)
@@ -250,3 +258,18 @@ def test_cli_pantilt_refusals(twin, capsys, cli_main):
     twin.set_fault("hardware_error", ids=[1])
     assert cli_main(["pantilt", "--device", twin.path, "status"]) == 3
     assert "pan overheating" in capsys.readouterr().out
+
+
+def test_poll_yields_states_on_deadlines(twin):
+    import threading
+
+    with head(twin) as h:
+        stop = threading.Event()
+        states = []
+        for st in h.poll(rate_hz=50.0, stop=stop):
+            states.append(st)
+            if len(states) == 5:
+                stop.set()
+        assert len(states) == 5
+        assert all(b.stamp_ns > a.stamp_ns for a, b in zip(states, states[1:], strict=False))
+        assert len(list(h.poll(rate_hz=100.0, count=3))) == 3
