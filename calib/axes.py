@@ -163,7 +163,8 @@ def calibrate_axes(cam_T_target, pan, tilt, base_T_target: np.ndarray | None = N
         R, t = base_T_target[:3, :3], base_T_target[:3, 3]
         p1, p2, d1, d2 = R @ p1 + t, R @ p2 + t, R @ d1, R @ d2
         frame = "base"
-    angle = float(np.degrees(np.arccos(np.clip(abs(d1 @ d2), -1.0, 1.0))))
+    # Signed: both directions point along positive joint rotation (nominally 90 deg).
+    angle = float(np.degrees(np.arccos(np.clip(d1 @ d2, -1.0, 1.0))))
     return AxisCalibration(p1, d1, p2, d2, angle, float(np.linalg.norm(c1 - c2)),
                            0.5 * (p1 + p2), rms_rot, rms_t, frame)
 

@@ -5,8 +5,9 @@ Each pose: move the joints, read back the measured angles, grab, detect the targ
 blurred frames (variance of the Laplacian over the target below ``--min-sharpness``) and poor
 fits (RMS reprojection above ``--max-reproj``), then record base_T_head (the head's forward
 kinematics at the measured angles) with cam_T_target (solvePnP).  ``--sim`` runs on the
-simulated rig of ``calib/sim.py``; the hardware path opens the pan-tilt driver and the camera
-grabber by URL.
+simulated rig of ``calib/sim.py`` with its joints on the Dynamixel twin, driven through the
+pan-tilt driver (``--sim-joints direct`` skips the bus); the hardware path opens the pan-tilt
+driver and the camera grabber by URL.
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--sim", action="store_true", help="use the simulated rig (no hardware)")
     src.add_argument("--seed", type=int, default=0, help="--sim: hidden mount and noise seed")
     src.add_argument("--truth", metavar="FILE", help="--sim: also write the hidden true mount")
+    src.add_argument("--sim-joints", choices=("twin", "direct"), default="twin",
+                     help="--sim: drive the Dynamixel twin through the pan-tilt driver (twin, "
+                          "default) or set the joint angles directly (direct, faster)")
     src.add_argument("--sim-blur", type=int, nargs="*", default=[], help=argparse.SUPPRESS)
     src.add_argument("--pantilt", metavar="URL",
                      help="pan-tilt device, e.g. serial:///dev/ttyUSB0?baudrate=57600")
@@ -79,12 +83,81 @@ def pose_set(n: int, pan_max: float, tilt_max: float) -> np.ndarray:
 
 # ---- joint and camera sources ---------------------------------------------------------------
 
-class SimSource:
-    """The simulated rig: joints settle on the Dynamixel grid, the camera renders the target
-    from the hidden true mount."""
+class DirectJoints:
+    """Joint angles without a bus: goals land on the Dynamixel position grid."""
 
-    def __init__(self, rig: SimRig, seed: int):
+    def move(self, pan: float, tilt: float) -> tuple[float, float]:
+        return round(pan / DXL_TICK) * DXL_TICK, round(tilt / DXL_TICK) * DXL_TICK
+
+    def close(self) -> None:
+        pass
+
+
+class HeadJoints:
+    """The pan-tilt driver (``cgamap.drivers.pantilt``): move, wait until the servos report
+    the goal and stand still, return the measured angles.  With ``twin=True`` a Dynamixel bus
+    twin is started on a pty first, so --sim drives the same byte path as the robot."""
+
+    def __init__(self, url: str | None, settle: float, twin: bool = False):
+        try:
+            from cgamap.drivers.pantilt import PanTilt, PanTiltConfig, PanTiltError
+        except ImportError:
+            raise CollectError("the pan-tilt driver (cgamap.drivers.pantilt) is not available "
+                               "in this build") from None
+        self._error = PanTiltError
+        self.settle = settle
+        self.twin = None
+        if twin:
+            from cgamap.drivers.sim.dynamixel import DynamixelBusTwin
+
+            self.twin = DynamixelBusTwin()
+            url = self.twin.start()
+        try:
+            # profile velocity 0: the servos' own velocity limit (fast, fine for calibration)
+            self.head = PanTilt(PanTiltConfig(url=url, profile_velocity=0.0)).open()
+            if not self.head.torque(True):
+                raise PanTiltError(f"{url}: torque could not be enabled")
+        except (PanTiltError, OSError, ValueError) as exc:
+            self.close()
+            raise CollectError(f"--pantilt: {exc}") from None
+
+    def move(self, pan: float, tilt: float) -> tuple[float, float]:
+        try:
+            self.head.move(pan, tilt)
+        except self._error as exc:
+            raise CollectError(f"pan-tilt: {exc}") from None
+        st = self.head.wait_until_reached(pan, tilt, tol=0.01, timeout=10.0)
+        if st is None:
+            raise CollectError(f"pan-tilt: goal ({pan:.3f}, {tilt:.3f}) rad not reached in 10 s")
+        # The moving flag drops within the servo's moving threshold: read until two reads agree.
+        prev = (st.pan, st.tilt)
+        for _ in range(50):
+            time.sleep(0.02)
+            st = self.head.read_state() or st
+            if (st.pan, st.tilt) == prev:
+                break
+            prev = (st.pan, st.tilt)
+        if self.settle > 0 and self.twin is None:
+            time.sleep(self.settle)  # let the head stop swinging before the exposure
+            st = self.head.read_state() or st
+        return float(st.pan), float(st.tilt)
+
+    def close(self) -> None:
+        head = getattr(self, "head", None)
+        if head is not None:
+            head.close()
+        if self.twin is not None:
+            self.twin.stop()
+            self.twin = None
+
+
+class SimSource:
+    """The simulated rig: the camera renders the target from the hidden true mount at the
+    angles the joints report."""
+
+    def __init__(self, rig: SimRig, seed: int, joints):
         self.rig = rig
+        self.joints = joints
         self.rng = np.random.default_rng(seed + 1)
         self.pose = (0.0, 0.0)
         self.index = 0
@@ -93,7 +166,7 @@ class SimSource:
         return self.rig.K, np.zeros(5)
 
     def move(self, pan: float, tilt: float) -> tuple[float, float]:
-        self.pose = (round(pan / DXL_TICK) * DXL_TICK, round(tilt / DXL_TICK) * DXL_TICK)
+        self.pose = self.joints.move(pan, tilt)
         return self.pose
 
     def grab(self) -> np.ndarray:
@@ -102,44 +175,39 @@ class SimSource:
         return img
 
     def close(self) -> None:
-        pass
+        self.joints.close()
 
 
 class HardwareSource:
-    """Pan-tilt driver + camera grabber, opened by URL.  Both are imported lazily, so a build
-    without them (or without hardware) fails here with one clear line."""
+    """Pan-tilt driver + camera grabber, opened by URL (both imported lazily, so a build or a
+    machine without them fails here with one clear line)."""
 
     def __init__(self, pantilt_url: str, camera_url: str, intrinsics: str | None,
                  settle: float):
-        self.settle = settle
-        try:
-            from cgamap.drivers import pantilt  # noqa: F401  (guard: optional in this build)
-        except ImportError:
-            raise CollectError("the pan-tilt driver (cgamap.drivers.pantilt) is not available "
-                               "in this build; use --sim") from None
-        self.head = _open_pantilt(pantilt_url)
         from cgamap.drivers.stereo import load_calibration, open_grabber
 
-        model, _, device = camera_url.partition("://")
-        if not device and not _:
-            raise CollectError(f"--camera {camera_url!r}: expected MODEL://DEVICE")
+        model, sep, device = camera_url.partition("://")
+        if not sep:
+            raise CollectError(f"--camera {camera_url!r}: expected MODEL://DEVICE "
+                               "(depthai://, opencv://0,1, synthetic://corridor)")
+        try:
+            self._calib = load_calibration(intrinsics) if intrinsics else None
+        except (OSError, ValueError, KeyError) as exc:
+            raise CollectError(f"--intrinsics {intrinsics}: {exc}") from None
         config = {"calibration": intrinsics} if intrinsics else {}
+        self.joints = HeadJoints(pantilt_url, settle)
         try:
             self.camera = open_grabber(model, device, config)
             self.camera.open()
-        except (ValueError, OSError, RuntimeError) as exc:
-            self.head.close()
+        except (ValueError, OSError, RuntimeError, ImportError) as exc:
+            self.joints.close()
             raise CollectError(f"--camera {camera_url!r}: {exc}") from None
-        self._calib = load_calibration(intrinsics) if intrinsics else None
 
     def intrinsics(self) -> tuple[np.ndarray, np.ndarray] | None:
         return (self._calib.K, np.zeros(5)) if self._calib is not None else None
 
     def move(self, pan: float, tilt: float) -> tuple[float, float]:
-        self.head.move_to(pan, tilt)
-        time.sleep(self.settle)
-        state = self.head.read_state()
-        return float(state.pan), float(state.tilt)
+        return self.joints.move(pan, tilt)
 
     def grab(self) -> np.ndarray:
         import cv2
@@ -152,47 +220,7 @@ class HardwareSource:
 
     def close(self) -> None:
         self.camera.close()
-        self.head.close()
-
-
-def _open_pantilt(url: str):
-    """Open the pan-tilt driver behind a small adapter: move_to(pan, tilt), read_state()."""
-    from cgamap.drivers import pantilt
-
-    opener = getattr(pantilt, "open_pantilt", None) or getattr(pantilt, "PanTilt", None)
-    if opener is None:
-        raise CollectError("cgamap.drivers.pantilt has no open_pantilt()/PanTilt to open")
-    try:
-        dev = opener(url)
-        if hasattr(dev, "open"):
-            dev.open()
-    except (ValueError, OSError) as exc:
-        raise CollectError(f"--pantilt {url!r}: {exc}") from None
-    return _PanTiltAdapter(dev)
-
-
-class _PanTiltAdapter:
-    def __init__(self, dev):
-        self.dev = dev
-
-    def move_to(self, pan: float, tilt: float) -> None:
-        for name in ("move_to", "set_goal", "goto"):
-            fn = getattr(self.dev, name, None)
-            if fn is not None:
-                fn(pan, tilt)
-                return
-        raise CollectError("pan-tilt driver has no move_to(pan, tilt)")
-
-    def read_state(self):
-        for name in ("read_state", "state", "read"):
-            fn = getattr(self.dev, name, None)
-            if fn is not None:
-                return fn()
-        raise CollectError("pan-tilt driver has no read_state()")
-
-    def close(self) -> None:
-        if hasattr(self.dev, "close"):
-            self.dev.close()
+        self.joints.close()
 
 
 # ---- the loop -----------------------------------------------------------------------------
@@ -260,7 +288,9 @@ def run_collect(args: argparse.Namespace) -> int:
             raise CollectError("--sim excludes --pantilt/--camera")
         rig = default_rig(args.seed, board=target)
         rig.motion_blur = set(args.sim_blur)
-        source = SimSource(rig, args.seed)
+        joints = (DirectJoints() if args.sim_joints == "direct"
+                  else HeadJoints(None, args.settle, twin=True))
+        source = SimSource(rig, args.seed, joints)
         axis_point = rig.axis_point
     elif args.pantilt and args.camera:
         source = HardwareSource(args.pantilt, args.camera, args.intrinsics, args.settle)

@@ -162,7 +162,8 @@ def test_degenerate_pairs_are_refused_by_the_cli(tmp_path, capsys):
 
 def test_collect_skips_blurred_frames(tmp_path, capsys):
     out = tmp_path / "p.yaml"
-    code, stdout, _ = _run(["calib", "collect", "--sim", "--poses", "8", "--sim-blur", "2", "5",
+    code, stdout, _ = _run(["calib", "collect", "--sim", "--sim-joints", "direct", "--poses", "8",
+                            "--sim-blur", "2", "5",
                             "--out", str(out)], capsys)
     assert code == 0
     doc = yaml.safe_load(out.read_text())
@@ -178,7 +179,8 @@ def test_collect_charuco_sim(tmp_path, capsys):
     if not hasattr(cv2, "aruco"):
         pytest.skip("no cv2.aruco")
     out = tmp_path / "p.json"
-    code, _, _ = _run(["calib", "collect", "--sim", "--target", "charuco", "--poses", "10",
+    code, _, _ = _run(["calib", "collect", "--sim", "--sim-joints", "direct", "--target", "charuco",
+                       "--poses", "10",
                        "--out", str(out), "--json"], capsys)
     assert code == 0
     assert len(json.loads(out.read_text())["pairs"]) >= 8
@@ -196,3 +198,27 @@ def test_pose_set_excites_both_joints():
     assert q.shape == (20, 2)
     assert np.ptp(q[:, 0]) > math.radians(20) and np.ptp(q[:, 1]) > math.radians(14)
     assert abs(np.corrcoef(q[:, 0], q[:, 1])[0, 1]) < 0.5
+
+
+def test_sim_joints_run_through_the_dynamixel_twin():
+    from cgamap.calib.collect import DXL_TICK, HeadJoints
+
+    joints = HeadJoints(None, 0.0, twin=True)
+    try:
+        assert joints.twin is not None and joints.twin.path
+        pan, tilt = joints.move(0.1, -0.05)
+        assert abs(pan - 0.1) <= 2 * DXL_TICK and abs(tilt + 0.05) <= 2 * DXL_TICK
+        # The twin's servo really is there (the byte path was used, not a shortcut).
+        assert abs(joints.twin.angle(1) - pan) <= 2 * DXL_TICK
+    finally:
+        joints.close()
+    assert joints.twin is None
+
+
+def test_hardware_path_fails_with_one_clear_line(tmp_path, capsys):
+    code, _, err = _run(["calib", "collect", "--pantilt", str(tmp_path / "ttyNOPE"),
+                         "--camera", "synthetic://corridor", "--out", str(tmp_path / "p.json")],
+                        capsys)
+    assert code == 2 and err.count("\n") == 1 and "--pantilt" in err
+    code, _, err = _run(["calib", "collect", "--pantilt", "x", "--camera", "nourl"], capsys)
+    assert code == 2 and "MODEL://DEVICE" in err
