@@ -208,7 +208,7 @@ def test_init_and_continuous_streaming(twin):
     assert len(scans) == 10
     assert [s.seq for s in scans] == list(range(10))
     stamps = np.array([s.device_stamp for s in scans])
-    assert np.all(np.diff(stamps) > 0)
+    assert np.all(np.diff(stamps) > 0) and np.all(np.diff(stamps) % 25 == 0)   # 40 Hz turns
     for s in scans:
         assert len(s.ranges) == 1081
         assert s.angle_min == pytest.approx(-math.radians(135))
@@ -221,6 +221,11 @@ def test_init_and_continuous_streaming(twin):
     rec = {x.timestamp: x for x in twin.sent}
     for s in scans:
         assert_same_mm(s.ranges, rec[s.device_stamp].values)
+    # ground truth: the world seen from the trajectory at the scan's device time
+    for s in scans[:3]:
+        truth = twin.world.scan(s.device_stamp / 1000.0, s.angles, 60.0, None, None)
+        ok = np.isfinite(s.ranges) & np.isfinite(truth)
+        assert np.median(np.abs(s.ranges[ok] - truth[ok])) < 0.01      # noise sigma 5 mm
     assert twin.commands[-1] == "QT" and not twin.streaming
 
 

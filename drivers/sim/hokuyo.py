@@ -210,8 +210,10 @@ class HokuyoTwin:
         self._tm_mode = False
         self._stream: dict | None = None
 
-    def clock_ms(self) -> float:
-        return self.clock0_ms + (time.monotonic() - self._t0) * 1000.0 * self.speed
+    def clock_ms(self, at: float | None = None) -> float:
+        """The device clock (ms, not wrapped) at host monotonic time ``at`` (default now)."""
+        at = time.monotonic() if at is None else at
+        return self.clock0_ms + (at - self._t0) * 1000.0 * self.speed
 
     def _stamp(self) -> int:
         return int(self.clock_ms()) % (1 << 24)
@@ -368,34 +370,42 @@ class HokuyoTwin:
         skip, count = int(m.group(6)), int(m.group(7))
         self._laser = True
         self._reply(line, "00")
-        spec.update(skip=skip, count=count, sent=0, tick=0,
-                    due=time.monotonic() + self.scan_period_s)
+        due = time.monotonic() + self.scan_period_s
+        spec.update(skip=skip, count=count, sent=0, tick=0, due=due,
+                    ms0=int(self.clock_ms(due)))
         self._stream = spec
 
     def _maybe_stream(self) -> None:
         s = self._stream
-        if s is None or time.monotonic() < s["due"]:
+        now = time.monotonic()
+        if s is None or now < s["due"]:
             return
-        s["due"] += self.scan_period_s
-        if s["due"] < time.monotonic():      # fell behind (slow host): do not burst
-            s["due"] = time.monotonic() + self.scan_period_s
+        # turns happen on a fixed grid of device time (25 ms for a UTM-30LX); a scan is
+        # sent when the host thread gets to it
+        k = s["tick"]
+        ms = s["ms0"] + k * 60000 // self.p["scan"]
         s["tick"] += 1
-        if (s["tick"] - 1) % (s["skip"] + 1):
+        s["due"] += self.scan_period_s
+        if s["due"] < now:                    # fell behind (slow host): skip missed turns
+            missed = int((now - s["due"]) / self.scan_period_s) + 1
+            s["tick"] += missed
+            s["due"] += missed * self.scan_period_s
+        if k % (s["skip"] + 1):
             return
         s["sent"] += 1
         remaining = max(0, s["count"] - s["sent"]) if s["count"] else 0
         echo = s["echo"][:13] + f"{remaining:02d}" + s["echo"][15:]
-        self._send_scan(s, echo, "99")
+        self._send_scan(s, echo, "99", ms)
         if s["count"] and s["sent"] >= s["count"]:
             self._stream = None
 
-    def _measure(self, spec: dict) -> tuple[np.ndarray, np.ndarray | None]:
-        """Ranges (mm, with device error codes) of the requested steps, cluster centres."""
+    def _measure(self, spec: dict, t: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Ranges (mm, with device error codes) of the requested steps (cluster centres) as
+        sensed at device time ``t`` seconds: the world's trajectory at the scan's timestamp."""
         p = self.p
         steps = np.arange(spec["start"], spec["end"] + 1, spec["cluster"], dtype=float)
         steps += (np.minimum(spec["cluster"], spec["end"] + 1 - steps) - 1) / 2.0
         angles = (steps - p["afrt"]) * 2.0 * np.pi / p["ares"]
-        t = self.clock_ms() / 1000.0
         r = self.world.scan(t, angles, p["dmax"] / 1000.0, self.noise, self.rng)
         mm = np.round(np.nan_to_num(r, nan=0.0) * 1000.0)
         limit = 4095 if spec["enc"] == "S" else p["dmax"]
@@ -406,9 +416,10 @@ class HokuyoTwin:
             inten = np.where(bad, 0, 4000 - np.minimum(mm // 20, 3000)).astype(np.uint32)
         return mm, inten
 
-    def _send_scan(self, spec: dict, echo: str, status: str) -> None:
-        mm, inten = self._measure(spec)
-        ts = self._stamp()
+    def _send_scan(self, spec: dict, echo: str, status: str, ms: int | None = None) -> None:
+        ms = int(self.clock_ms()) if ms is None else ms
+        mm, inten = self._measure(spec, ms / 1000.0)
+        ts = ms % (1 << 24)
         block = scan_reply(echo, status, ts, mm, spec["enc"], inten)
         with self._lock:
             cut = self._truncate > 0
