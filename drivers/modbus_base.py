@@ -245,6 +245,7 @@ class ModbusBase:
         self._count: dict[str, int] = {}
         self._seq = 0
         self._connected = False
+        self._failing = False
 
     # -- connection ---------------------------------------------------------------------
     def _make_client(self) -> Any:
@@ -299,6 +300,12 @@ class ModbusBase:
             pass
 
     # -- transactions -------------------------------------------------------------------
+    def _log_failure(self, what: str, exc: Exception) -> None:
+        """Warn once when the device starts failing; the counters carry the rest."""
+        level = logging.DEBUG if self._failing else logging.WARNING
+        self._failing = True
+        log.log(level, "%s: %s (%s)", self.config.url, what, exc)
+
     def _request(self, fn: str, *args: Any, **kw: Any) -> Any | None:
         """One Modbus transaction; None (and a counted error) if it failed."""
         from pymodbus.exceptions import ConnectionException, ModbusIOException
@@ -309,23 +316,18 @@ class ModbusBase:
                     raise ConnectionException("reconnect failed")
                 self._connected = True
             rr = getattr(self._client, fn)(*args, device_id=self.device_id, **kw)
-        except ConnectionException as exc:
+        except (ConnectionException, OSError) as exc:  # refused, reset, pty closed
             self.errors.disconnects += 1
-            log.warning("%s: connection lost (%s)", self.config.url, exc)
+            self._log_failure("connection lost", exc)
             self._client.close()
             self._connected = False
             return None
         except ModbusIOException as exc:
             self.errors.timeout += 1
-            log.info("%s: no reply (%s)", self.config.url, exc)
+            self._log_failure("no reply", exc)
             self._drain()
             return None
-        except OSError as exc:  # pty closed, socket reset
-            self.errors.disconnects += 1
-            log.warning("%s: transport error (%s)", self.config.url, exc)
-            self._client.close()
-            self._connected = False
-            return None
+        self._failing = False
         if rr.isError():
             code = getattr(rr, "exception_code", None)
             if code is None:  # some pymodbus paths return an error object for timeouts

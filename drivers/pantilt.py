@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
+import termios
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields, replace
@@ -42,6 +43,8 @@ from cgamap.cga import Multivector, rotor
 from .messages import ErrorCounters, PanTiltState
 
 log = logging.getLogger(__name__)
+# a vanished port (USB unplug, twin closed the pty) shows as any of these
+_PORT_ERRORS = (OSError, serial.SerialException, termios.error)
 
 ADDR_TORQUE, ADDR_HW_ERROR, ADDR_PROFILE_VEL, ADDR_GOAL_POS = 64, 70, 112, 116
 ADDR_STATE, STATE_LEN = 122, 14            # Moving(122) .. Present Position(132..135)
@@ -200,7 +203,7 @@ class PanTilt:
 
         try:
             out = call()
-        except (OSError, serial.SerialException) as exc:
+        except _PORT_ERRORS as exc:
             self.errors.disconnects += 1
             raise PanTiltBusError(f"{self.config.url}: {what}: {exc}") from exc
         res, err = (out, 0) if isinstance(out, int) else (out[-2], out[-1])
@@ -235,7 +238,7 @@ class PanTilt:
         time.sleep((2.0 * self.config.latency_ms + 2.0) / 1000.0)
         try:
             self._port.clearPort()
-        except (OSError, serial.SerialException):
+        except _PORT_ERRORS:
             pass
         self._port.is_using = False
 
@@ -254,7 +257,11 @@ class PanTilt:
         self._ph = PacketHandler(2.0)
         try:
             for joint, name in ((self.config.pan, "pan"), (self.config.tilt, "tilt")):
-                model = self.ping(joint.dxl_id)
+                model = None
+                for _ in range(3):   # a noisy line may eat one ping
+                    model = self.ping(joint.dxl_id)
+                    if model is not None:
+                        break
                 if model is None:
                     raise PanTiltError(f"{self.config.url}: {name} servo id {joint.dxl_id} "
                                        "does not answer ping")

@@ -338,3 +338,33 @@ def test_sim_device_process_prints_address_and_stops():
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
+
+
+@pytest.mark.parametrize("rtu", [False, True])
+def test_vanished_device_is_counted_not_hung(rtu):
+    tw = ModbusBaseTwin()
+    tw.start(rtu=rtu)
+    base = ModbusBase(ModbusBaseConfig(url=tw.url, timeout_s=0.1)).open()
+    try:
+        assert base.read() is not None
+        tw.stop()
+        assert [base.read() for _ in range(3)] == [None] * 3
+        assert base.errors.disconnects == 3
+        with pytest.raises(ModbusBaseError, match="no reply for 0.3 s"):
+            list(base.poll(max_silence_s=0.3))
+    finally:
+        base.close()
+        tw.stop()
+
+
+def test_rtu_line_noise_is_counted_and_survived():
+    tw = ModbusBaseTwin(BaseTwinConfig(encoder_offset=12345), fault_rate=0.01, seed=3)
+    tw.start(rtu=True)
+    try:
+        with ModbusBase(ModbusBaseConfig(url=tw.url, timeout_s=0.05)) as base:
+            got = [base.read() for _ in range(40)]
+            ok = [m for m in got if m is not None]
+            assert ok and len(ok) < 40 and base.errors.timeout > 0
+            assert all(m.left == 12345 for m in ok)        # a CRC-checked frame or nothing
+    finally:
+        tw.stop()

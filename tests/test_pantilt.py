@@ -273,3 +273,30 @@ def test_poll_yields_states_on_deadlines(twin):
         assert len(states) == 5
         assert all(b.stamp_ns > a.stamp_ns for a, b in zip(states, states[1:], strict=False))
         assert len(list(h.poll(rate_hz=100.0, count=3))) == 3
+
+
+def test_vanished_bus_raises_bus_error():
+    tw = DynamixelBusTwin()
+    tw.start()
+    h = PanTilt(PanTiltConfig(url=tw.path)).open()
+    try:
+        tw.stop()
+        with pytest.raises(PanTiltBusError):
+            h.read_state()
+        assert h.errors.disconnects == 1
+    finally:
+        h.close()
+
+
+def test_line_noise_is_counted_and_survived():
+    tw = DynamixelBusTwin(fault_rate=0.02, seed=5)
+    tw.start()
+    try:
+        with PanTilt(PanTiltConfig(url=tw.path, latency_ms=20, max_timeouts=50)) as h:
+            got = [h.read_state() for _ in range(40)]
+            ok = sum(s is not None for s in got)
+            bad = h.errors.checksum + h.errors.timeout
+            assert ok > 0 and bad > 0 and ok + bad >= 40
+            assert all(abs(s.pan) < 1e-9 for s in got if s is not None)  # never a garbled value
+    finally:
+        tw.stop()

@@ -14,6 +14,8 @@ Faults (:meth:`DynamixelBusTwin.set_fault`, optionally for some IDs only):
 SDK has given up: the classic desynchronising late reply), ``"corrupt_crc"`` (replies carry a
 wrong CRC) and ``"hardware_error"`` (Hardware Error Status bit 2, overheating: the alert bit 7 is
 set in every status packet and torque drops, until a REBOOT instruction or ``set_fault(None)``).
+``fault_rate`` (``cgamap sim-device dynamixel-pantilt --fault-rate P --seed S``) flips each sent
+byte with probability P: line noise.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import heapq
 import math
 import os
+import random
 import select
 import signal
 import sys
@@ -202,8 +205,11 @@ class ServoSim:
 class DynamixelBusTwin:
     """Servos on one pty bus; ``start()`` returns the path to give the SDK's PortHandler."""
 
-    def __init__(self, models: dict[int, int] | None = None) -> None:
+    def __init__(self, models: dict[int, int] | None = None, fault_rate: float = 0.0,
+                 seed: int = 0) -> None:
         models = models or {1: 1020, 2: 1060}
+        self.fault_rate = float(fault_rate)   # probability per sent byte of a flipped byte
+        self._rng = random.Random(seed)
         self.servos = {i: ServoSim(i, m) for i, m in models.items()}
         self.fault: str | None = None
         self.fault_ids: set[int] | None = None
@@ -344,6 +350,9 @@ class DynamixelBusTwin:
                 self._on_packets(buf)
             while self._outbox and self._outbox[0][0] <= time.monotonic():
                 _, _, pkt = heapq.heappop(self._outbox)
+                if self.fault_rate > 0:
+                    pkt = bytes(b ^ 0xFF if self._rng.random() < self.fault_rate else b
+                                for b in pkt)
                 try:
                     os.write(master, pkt)
                 except OSError:
@@ -385,7 +394,8 @@ class DynamixelBusTwin:
 
 def main(args) -> int:
     """``cgamap sim-device dynamixel-pantilt``: servos 1 (XM430-W350) and 2 (XL430-W250)."""
-    twin = DynamixelBusTwin()
+    twin = DynamixelBusTwin(fault_rate=float(getattr(args, "fault_rate", 0.0) or 0.0),
+                            seed=int(getattr(args, "seed", 0) or 0))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

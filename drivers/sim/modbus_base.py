@@ -15,7 +15,8 @@ Faults (:meth:`ModbusBaseTwin.set_fault`): ``"no_reply"`` (requests are dropped)
 
 RTU: the server opens one end of a pty pair joined to a second pty by a relay thread; clients
 open the second pty's path (pymodbus opens serial ports exclusively, so one pty cannot serve
-both ends).
+both ends).  ``fault_rate`` flips reply bytes in the relay with that probability (line noise;
+RTU only, the CRC catches it).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import random
 import select
 import signal
 import sys
@@ -70,8 +72,11 @@ def _arc(pose: tuple[float, float, float], s_left: float, s_right: float,
 class ModbusBaseTwin:
     """The simulated controller; ``start()`` serves it, ``stop()`` ends it."""
 
-    def __init__(self, config: BaseTwinConfig | None = None) -> None:
+    def __init__(self, config: BaseTwinConfig | None = None, fault_rate: float = 0.0,
+                 seed: int = 0) -> None:
         self.config = config or BaseTwinConfig()
+        self.fault_rate = float(fault_rate)   # RTU only: probability per reply byte of a flip
+        self.seed = seed
         self._lock = threading.Lock()
         self._pose = (0.0, 0.0, 0.0)
         self._phi = [0.0, 0.0]                # wheel angles (rad)
@@ -307,6 +312,8 @@ class ModbusBaseTwin:
         self._relay_stop = (r, w)
         self.address = self.url = os.ttyname(s_cli)
 
+        rng = random.Random(self.seed)
+
         def relay() -> None:
             pair = {m_srv: m_cli, m_cli: m_srv}
             while True:
@@ -316,6 +323,9 @@ class ModbusBaseTwin:
                 for fd in ready:
                     try:
                         data = os.read(fd, 4096)
+                        if fd == m_srv and self.fault_rate > 0:   # line noise on replies
+                            data = bytes(b ^ 0xFF if rng.random() < self.fault_rate else b
+                                         for b in data)
                         os.write(pair[fd], data)
                     except OSError:
                         return
@@ -376,7 +386,8 @@ def circle_script(radius: float, speed: float, wheel_radius: float, track: float
 
 def main(args) -> int:
     """``cgamap sim-device modbus-base [--rtu] [--port N]``: serve until SIGINT/SIGTERM."""
-    twin = ModbusBaseTwin()
+    twin = ModbusBaseTwin(fault_rate=float(getattr(args, "fault_rate", 0.0) or 0.0),
+                          seed=int(getattr(args, "seed", 0) or 0))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
