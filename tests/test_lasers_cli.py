@@ -36,7 +36,8 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 @pytest.mark.parametrize("model, extra", [("lms2xx", ["--world", "room"]),
-                                          ("cola", ["--world", "loop"])])
+                                          ("cola", ["--world", "loop"]),
+                                          ("hokuyo", [])])
 def test_scan_json_against_twin(model, extra):
     twin, where = _start_twin(model, "--seed", "3", *extra)
     try:
@@ -50,7 +51,7 @@ def test_scan_json_against_twin(model, extra):
         assert [o["seq"] for o in objs] == [0, 1, 2]
         for o in objs:
             assert {"seq", "stamp_ns", "angle_min", "angle_increment", "ranges"} <= set(o)
-            assert len(o["ranges"]) in (181, 811)
+            assert len(o["ranges"]) in (181, 811, 1081)
             assert any(r is not None and r > 0 for r in o["ranges"])
         text = subprocess.run(CLI + ["scan", "--device", where, "--model", model,
                                      "--count", "1"], capture_output=True, text=True,
