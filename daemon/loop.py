@@ -301,17 +301,24 @@ class MappingLoop:
         self.timing = {"scan_ms": 0.0, "frame_ms": 0.0}
         self._last_scan: LaserScan | None = None
         self.odometry_expected = odom_dev is not None
+        self.scan_odometry = False
 
     # -- inputs ---------------------------------------------------------------------------
     def handle(self, name: str, msg: Any) -> None:
         if isinstance(msg, OdometryPose):
-            self.on_odometry(msg.stamp_ns, (msg.x, msg.y, msg.theta))
+            if not self.scan_odometry:
+                self.on_odometry(msg.stamp_ns, (msg.x, msg.y, msg.theta))
         elif isinstance(msg, WheelTicks):
             if self.wheels is None:
                 self.wheels = WheelOdometry(self.cfg["mapping"]["odometry"])
             self.on_odometry(msg.stamp_ns, self.wheels.update(msg))
         elif isinstance(msg, LaserScan):
             self.counts["scans_in"] += 1
+            if msg.pose_odom is not None:
+                # a log's scan carries the odometry of its own instant (CARMEN FLASER): better
+                # than interpolating, and the log's separate ODOM lines are then ignored
+                self.scan_odometry = True
+                self.on_odometry(msg.stamp_ns, msg.pose_odom)
             self.pending.append(msg)
         elif isinstance(msg, PanTiltState):
             self.pantilt.append(msg)

@@ -1,0 +1,135 @@
+"""cgamapd end to end: twins + daemon subprocess, READY on a fake notify socket, drive, query,
+pose error against the simulation's truth, CLI exports and recording, SIGTERM, checkpoint,
+restart from the checkpoint, replay of the recording."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import stat
+import subprocess
+import sys
+
+import pytest
+from cgamap.daemon.demo import Driver, truth_error
+from cgamap.daemon.export import read_ply_counts
+from cgamap.daemon.recording import read_messages
+from cgamap.drivers.messages import LaserScan, WheelTicks
+from cgamap.drivers.sim.world import get_world
+from daemon_stack import DaemonProc, short_dir, stack_config, start_twin, wait_until
+
+GEOM = {"wheel_radius": 0.05, "track_width": 0.30}
+
+
+def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cgamap.daemon.cli", *args],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def stack(tmp_path):
+    laser = start_twin("hokuyo", world="loop")
+    base = start_twin("modbus-base")
+    run = short_dir()
+    daemons: list[DaemonProc] = []
+    driver = Driver(base.url, get_world("loop"), laser.started_ns, GEOM)
+
+    def daemon(**kw) -> DaemonProc:
+        cfg = stack_config(laser, base, camera_world="loop", epoch_ns=laser.started_ns)
+        d = DaemonProc(cfg, tmp_path, run, **kw)
+        daemons.append(d)
+        return d
+
+    try:
+        yield daemon, driver, tmp_path
+    finally:
+        driver.stop_event.set()
+        if driver.is_alive():
+            driver.join(5)
+        for d in daemons:
+            d.stop()
+        laser.stop()
+        base.stop()
+        shutil.rmtree(run, ignore_errors=True)
+
+
+def test_end_to_end(stack):
+    daemon, driver, tmp = stack
+    d = daemon()
+    d.wait_ready()
+    assert stat.S_IMODE(d.socket.stat().st_mode) == 0o660
+    driver.start()
+    assert wait_until(lambda: d.ask("status")["counts"].get("scans", 0) >= 60, 90), \
+        d.log_text()
+    st = d.ask("status")
+    states = {x["name"]: x["state"] for x in st["devices"]}
+    assert states["laser"] == "running" and states["base"] == "running"
+    assert states["head"] == "disabled"
+    assert wait_until(lambda: d.ask("status")["map"]["planes"] >= 1, 60), d.log_text()
+
+    # the CLI against the socket: status, exports, a short recording
+    sock = str(d.socket)
+    out = cli("status", "--socket", sock)
+    assert out.returncode == 0 and "laser" in out.stdout, out.stderr
+    for fmt in ("png", "pgm", "ply", "json"):
+        res = cli("map", "export", "--socket", sock, "--format", fmt, "-o", str(tmp / f"m.{fmt}"))
+        assert res.returncode == 0, res.stderr
+    assert (tmp / "m.png").stat().st_size > 1000 and (tmp / "m.yaml").exists()
+    assert read_ply_counts(tmp / "m.ply")[1] >= 5
+    assert len(json.loads((tmp / "m.json").read_text())["segments"]) >= 4
+    rec = cli("record", "--socket", sock, "--duration", "3", str(tmp / "run.mcap"))
+    assert rec.returncode == 0, rec.stderr
+    msgs = list(read_messages(tmp / "run.mcap"))
+    assert sum(isinstance(m, LaserScan) for m in msgs) >= 20
+    assert sum(isinstance(m, WheelTicks) for m in msgs) >= 20
+
+    # pose error against the simulation's truth (twin clock in every scan)
+    err = truth_error(d.ask("trajectory")["rows"], get_world("loop"))
+    print("pose error vs truth:", {k: v for k, v in err.items() if not k.startswith("_")})
+    assert err["poses"] >= 60
+    assert err["ate_trans_m"] < 0.15 and err["ate_rot_deg"] < 3.0
+    driver.stop_event.set()
+    driver.join(5)
+    final_map = d.ask("map")
+
+    rc, took = d.terminate()
+    print(f"SIGTERM to exit: {took:.2f} s")
+    assert rc == 0, d.log_text()
+    msgs = d.notify.messages
+    assert "READY=1" in msgs and "WATCHDOG=1" in msgs and "STOPPING=1" in msgs
+    assert msgs.index("READY=1") < msgs.index("STOPPING=1")
+    ck = d.checkpoint()
+    assert ck is not None and ck["reason"] == "shutdown"
+    assert len(ck["loop"]["map2d"]["map"]["a"]) >= len(final_map["segments"]) > 0
+
+    # a new daemon on the same state directory starts from the checkpoint
+    d2 = daemon()
+    d2.wait_ready()
+    st2 = d2.ask("status")
+    assert st2["loaded_from"] and st2["map"]["segments"] == len(ck["loop"]["map2d"]["map"]["a"])
+    assert d2.terminate()[0] == 0
+
+
+def test_replay_of_a_recording(stack):
+    """Record the devices for a few seconds, then reproduce the run from the MCAP file."""
+    daemon, driver, tmp = stack
+    d = daemon()
+    d.wait_ready()
+    driver.start()
+    assert wait_until(lambda: d.ask("status")["counts"].get("scans", 0) >= 5, 60)
+    rec = cli("record", "--socket", str(d.socket), "--duration", "4", str(tmp / "r.mcap"))
+    assert rec.returncode == 0, rec.stderr
+    assert d.terminate()[0] == 0
+    run = short_dir()
+    try:
+        cfg = {"checkpoint": {"interval": 30.0}}
+        (tmp / "replay").mkdir(exist_ok=True)
+        r = DaemonProc(cfg, tmp / "replay", run, extra=["--replay", str(tmp / "r.mcap"),
+                                                         "--exit-after-replay"])
+        assert r.proc.wait(60) == 0, r.log_text()
+        ck = r.checkpoint()
+        assert ck["loop"]["counts"]["scans"] >= 5
+        assert len(ck["loop"]["map2d"]["map"]["a"]) >= 2
+        r.stop()
+    finally:
+        shutil.rmtree(run, ignore_errors=True)
