@@ -122,6 +122,45 @@ def _pantilt(n: int = 200) -> dict:
             "errors": errors}
 
 
+def _sdk_pitfalls(n: int = 10) -> dict:
+    """CPU spent per reply timeout, and wrong answers after late replies: the unmodified SDK
+    (busy-wait receive, 34 ms timeout, no resync) against the driver's workarounds."""
+    import dynamixel_sdk as sdk
+
+    twin = DynamixelBusTwin()
+    path = twin.start()
+    out: dict = {}
+    try:
+        port = sdk.PortHandler(path)
+        port.openPort()
+        ph = sdk.PacketHandler(2.0)
+        c = time.process_time()
+        for _ in range(n):
+            ph.ping(port, 9)                           # absent id: a timeout each
+        out["raw_sdk_cpu_ms_per_timeout"] = round((time.process_time() - c) / n * 1e3, 2)
+        twin.set_fault("late", delay_s=0.05)           # replies after the SDK's ~34 ms
+        wrong = 0
+        for _ in range(n):
+            model, res, _ = ph.ping(port, 1)
+            val, res2, _ = ph.read4ByteTxRx(port, 1, 132)
+            wrong += int(res == 0 and model != 1020) + int(res2 == 0 and val != 2048)
+        twin.set_fault(None)
+        time.sleep(0.1)
+        port.closePort()
+        out["raw_sdk_wrong_answers_with_50ms_late_replies"] = f"{wrong} of {2 * n}"
+        with PanTilt(PanTiltConfig(url=path, max_timeouts=10 ** 6)) as head:
+            c = time.process_time()
+            for _ in range(n):
+                head._txrx("ping", lambda: head._ph.ping(head._port, 9), 9)
+            out["driver_cpu_ms_per_timeout"] = round((time.process_time() - c) / n * 1e3, 2)
+            twin.set_fault("late", delay_s=0.05)
+            ok = sum(head.ping(1) == 1020 for _ in range(n))
+            out["driver_correct_pings_with_50ms_late_replies"] = f"{ok} of {n}"
+    finally:
+        twin.stop()
+    return out
+
+
 def run() -> dict:
     out: dict = {}
     for kind in ("tcp", "rtu"):
@@ -134,6 +173,7 @@ def run() -> dict:
             twin.stop()
     out["odom_square_closing_error"] = _square()
     out["pantilt"] = _pantilt()
+    out["dynamixel_sdk_pitfalls"] = _sdk_pitfalls()
     return out
 
 

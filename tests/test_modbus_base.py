@@ -148,9 +148,9 @@ def test_driver_unwraps_16bit_little_endian_map_from_fake_client():
 def twin_factory():
     twins = []
 
-    def make(rtu=False, **kw):
+    def make(rtu=False, rtu_over_tcp=False, **kw):
         tw = ModbusBaseTwin(BaseTwinConfig(wheel_radius=R, track_width=B, ticks_per_rev=TPR, **kw))
-        tw.start(rtu=rtu)
+        tw.start(rtu=rtu, rtu_over_tcp=rtu_over_tcp)
         twins.append(tw)
         return tw
 
@@ -222,9 +222,9 @@ def test_slip_and_bias_show_as_odometry_error(twin_factory):
     assert pose[2] == pytest.approx(-0.02 / B, rel=0.05)   # (sr - sl) / b, 1 m each
 
 
-@pytest.mark.parametrize("rtu", [False, True])
+@pytest.mark.parametrize("rtu", [False, True, "over_tcp"])
 def test_faults_are_counted_and_recovered(twin_factory, rtu):
-    tw = twin_factory(rtu=rtu)
+    tw = twin_factory(rtu=rtu is True, rtu_over_tcp=rtu == "over_tcp")
     with ModbusBase(ModbusBaseConfig(url=tw.url, timeout_s=0.1)) as base:
         assert base.read() is not None
         for fault, counter in (("no_reply", "timeout"), ("slow", "timeout"),

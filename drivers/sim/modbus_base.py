@@ -245,8 +245,11 @@ class ModbusBaseTwin:
         return SimDevice(id=self.config.device_id, simdata=(bits, list(bits), hold, inp),
                          action=self._action)
 
-    def start(self, rtu: bool = False, port: int = 0, timeout: float = 10.0) -> str:
-        """Serve in a background thread; returns ``host:port`` or the client pty path."""
+    def start(self, rtu: bool = False, port: int = 0, timeout: float = 10.0,
+              rtu_over_tcp: bool = False) -> str:
+        """Serve in a background thread; returns ``host:port`` or the client pty path.
+        ``rtu_over_tcp``: RTU framing on the TCP port (url ``rtu+tcp://``, a serial-to-Ethernet
+        gateway in transparent mode)."""
         ready = threading.Event()
         err: list[BaseException] = []
         serial_path = self._open_ptys() if rtu else None
@@ -261,12 +264,14 @@ class ModbusBaseTwin:
                         self._device(), framer=FramerType.RTU, port=serial_path,
                         baudrate=115200, ignore_missing_devices=True)
                 else:
+                    framer = FramerType.RTU if rtu_over_tcp else FramerType.SOCKET
                     self._server = ModbusTcpServer(self._device(), address=("127.0.0.1", port),
-                                                   ignore_missing_devices=True)
+                                                   framer=framer, ignore_missing_devices=True)
                 await self._server.serve_forever(background=True)
                 if not rtu:
                     p = self._server.transport.sockets[0].getsockname()[1]
-                    self.address, self.url = f"127.0.0.1:{p}", f"tcp://127.0.0.1:{p}"
+                    scheme = "rtu+tcp" if rtu_over_tcp else "tcp"
+                    self.address, self.url = f"127.0.0.1:{p}", f"{scheme}://127.0.0.1:{p}"
             except BaseException as exc:  # reported to start()'s caller
                 err.append(exc)
                 ready.set()
