@@ -25,6 +25,8 @@ from cgamap.mapping.planes import (
     detect_planes,
     normal_angle_deg,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 # ---- readers -------------------------------------------------------------------------------
 
@@ -292,3 +294,27 @@ def test_cli_configurations_and_exports(tmp_path, capsys):
     assert "doorway: planes" in capsys.readouterr().out
     assert cli_main(args[:3] + ["--ply", str(tmp_path / "no" / "p.ply")]) == 2
     assert "export" in capsys.readouterr().err
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(theta=st.floats(0.0, np.pi), phi=st.floats(-np.pi, np.pi), rho=st.floats(0.0, 4.0),
+       method=st.sampled_from(["ransac", "hough"]))
+def test_any_orientation_is_recovered(theta, phi, rho, method):
+    """Poles of the ball (theta near 0 or pi), the phi seam at +-pi and rho = 0 included."""
+    n = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    rng = np.random.default_rng(0)
+    plane_pts = scenes.sample_rect(n * rho - 1.5 * u - 1.5 * v, u, v, 3.0, 3.0, 4000, rng)
+    pts = np.concatenate([plane_pts + rng.normal(0, 0.003, plane_pts.shape),
+                          rng.uniform(-3, 3, (1000, 3)) + n * rho])
+    planes = detect_planes(pts, method, PlaneParams(threshold=0.01, min_inliers=1500))
+    assert len(planes) == 1
+    p = planes[0]
+    assert normal_angle_deg(p.normal, n) < 0.3
+    # same plane, in the canonical form (rho >= 0): n and rho flip together near rho = 0
+    sign = np.sign(p.normal @ n)
+    assert abs(sign * p.rho - rho) < 0.003
+    t, ph, r = p.hough
+    assert 0 <= t <= np.pi and -np.pi < ph <= np.pi and r >= 0
