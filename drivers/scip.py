@@ -31,6 +31,7 @@ from .messages import ErrorCounters
 TIMESTAMP_PERIOD = 1 << 24          # the SCIP timestamp is a 24-bit millisecond counter
 MAX_DATA_PER_LINE = 64              # data characters per line before the checksum
 MAX_LINE = 1024                     # longer lines are garbage (longest real ones: ~70)
+MAX_REPLY_LINES = 64                # info replies have ~10 lines; more is garbage
 CHARS_PER_VALUE = {"D": 3, "S": 2, "E": 6}   # E: 3-char range + 3-char intensity
 
 # Echo lines of the data commands; search() tolerates garbage before the echo (a corrupted
@@ -416,6 +417,9 @@ class ScipParser:
             self.errors.framing += 1
             return False
         if blk.legacy:                            # SCIP 1.1: no checksums
+            if len(blk.data) >= MAX_REPLY_LINES:
+                self.errors.framing += 1
+                return False
             blk.data.append(line)
             return True
         if blk.scan:
@@ -435,6 +439,9 @@ class ScipParser:
             blk.data.append(payload)
             blk.size += len(payload)
             return True
+        if len(blk.data) >= MAX_REPLY_LINES:      # bound the memory a garbage stream can take
+            self.errors.framing += 1
+            return False
         # info lines: "KEY:value;C" (checksum excludes ';') or plain "text C"
         if len(line) >= 3 and line[-2:-1] == b";" and checksum(line[:-2]) == line[-1]:
             blk.data.append(line[:-2])

@@ -313,6 +313,26 @@ def test_fault_truncated_replies(twin):
         assert all(rec[s.device_stamp].intact for s in got)
 
 
+def test_unstable_blocks_and_reset(twin):
+    with _driver(twin) as d:
+        assert d.read_scan(2.0) is not None
+        twin.unstable(2)
+        got = list(d.scans(5, timeout=2.0))
+        assert len(got) == 5 and d.errors.device == 2        # 0M blocks counted, skipped
+        d.reset()
+        assert twin.commands[-3:] == ["RS", "BM", "MD0000108001000"]
+        assert d.read_scan(2.0) is not None
+
+
+def test_reply_garbage_is_bounded():
+    p = ScipParser()
+    p.feed(b"VV\n00P\n" + b"AB" + bytes([checksum(b"AB")]) + b"\n" * 1)
+    for _ in range(200):
+        p.feed(b"AB" + bytes([checksum(b"AB")]) + b"\n")
+    assert p.feed(b"\n") == [] and p.errors.framing > 0   # never a 200-line reply
+    assert p.feed(b"QT\n00P\n\n")[0].echo == "QT"
+
+
 def test_fault_stall_then_streaming_again(twin):
     with _driver(twin) as d:
         assert d.read_scan(2.0) is not None

@@ -7,6 +7,7 @@ world along its trajectory (range noise, dropouts) and can inject faults on dema
 - ``fault_rate``: each byte sent is replaced by a different random byte with that probability;
 - :meth:`HokuyoTwin.truncate` : the next n scan replies are cut short at a random point;
 - :meth:`HokuyoTwin.stall`    : send and answer nothing for a while;
+- :meth:`HokuyoTwin.unstable` : the next n scans come as ``0M`` (unstable) error blocks;
 - :meth:`HokuyoTwin.disconnect` / :meth:`HokuyoTwin.reconnect`: the pty vanishes and returns
   behind the same path (a USB unplug: the sensor restarts with the laser off).
 
@@ -151,6 +152,7 @@ class HokuyoTwin:
         self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         self._truncate = 0
+        self._unstable = 0
         self._stall_until = 0.0
         self._inbuf = b""
         self._power_on()
@@ -182,6 +184,11 @@ class HokuyoTwin:
         """Cut the next ``n`` scan replies short."""
         with self._lock:
             self._truncate += n
+
+    def unstable(self, n: int = 1) -> None:
+        """Answer the next ``n`` scans of the stream with status 0M (sensor unstable)."""
+        with self._lock:
+            self._unstable += n
 
     def stall(self, seconds: float) -> None:
         """Send nothing and answer nothing for ``seconds`` (commands sent meanwhile are lost)."""
@@ -395,6 +402,12 @@ class HokuyoTwin:
         s["sent"] += 1
         remaining = max(0, s["count"] - s["sent"]) if s["count"] else 0
         echo = s["echo"][:13] + f"{remaining:02d}" + s["echo"][15:]
+        with self._lock:
+            unstable = self._unstable > 0
+            self._unstable -= unstable
+        if unstable:                          # an error block in place of the scan
+            self._reply(echo, "0M")
+            return
         self._send_scan(s, echo, "99", ms)
         if s["count"] and s["sent"] >= s["count"]:
             self._stream = None
