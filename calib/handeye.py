@@ -300,8 +300,8 @@ class _NoiseModel:
     translation noise sigma_t per axis.  The head's rotation noise also moves the target
     estimate by the lever arm L_i = t_Z - t_H, so the residual covariance is
     [[2 sr^2 I, sr^2 [L]x], [sr^2 [L]x^T, 2 st^2 I + sr^2 [L]x [L]x^T]]; with ``lever=False``
-    the cross terms are dropped (diagonal whitening).  The two scales come from the residuals
-    (median based, so outliers do not inflate them)."""
+    the cross terms are dropped (diagonal whitening).  The two scales are estimated from the
+    residuals by a robust maximum likelihood (``estimate``)."""
 
     def __init__(self, floor_rot: float, floor_trans: float, lever: bool = True):
         self.floor_rot, self.floor_trans, self.lever = floor_rot, floor_trans, lever
@@ -315,19 +315,30 @@ class _NoiseModel:
         sr0 = np.sqrt(np.median(np.sum(res[:, :3] ** 2, -1)) / (2 * _CHI2_3_MEDIAN))
         st0 = np.sqrt(np.median(np.sum(res[:, 3:] ** 2, -1)) / (2 * _CHI2_3_MEDIAN))
         lr, lt = np.log(max(sr0, self.floor_rot)), np.log(max(st0, self.floor_trans))
+        # Closed forms by the Schur complement of the rotation block: with u = r_t + L x r_r / 2
+        # (independent of the scales), d^2 = |r_r|^2 / (2 sr^2) + (u.l)^2 / (2 st^2)
+        # + |u_perp|^2 / (2 st^2 + sr^2 |L|^2 / 2) for l = L/|L|, and log det Sigma follows.
+        rr2 = np.sum(res[:, :3] ** 2, -1)
+        if self.lever:
+            u = res[:, 3:] + 0.5 * np.cross(L, res[:, :3])
+            L2 = np.sum(L**2, -1)
+            lhat = L / np.sqrt(np.where(L2 > 0, L2, 1.0))[:, None]
+            upar2 = np.einsum("ni,ni->n", u, lhat) ** 2
+            uperp2 = np.sum(u**2, -1) - upar2
+        else:
+            L2 = np.zeros(len(res))
+            upar2, uperp2 = np.zeros(len(res)), np.sum(res[:, 3:] ** 2, -1)
         for span, steps in ((3.0, 13), (0.5, 11), (0.1, 11)):
-            gr = lr + np.linspace(-span, span, steps)
-            gt = lt + np.linspace(-span, span, steps)
-            SR, ST = np.meshgrid(np.exp(gr), np.exp(gt), indexing="ij")
-            S = self.covariances(L, SR.reshape(-1), ST.reshape(-1))  # (G, n, 6, 6)
-            Lc = np.linalg.cholesky(S)
-            logdet = 2 * np.sum(np.log(np.diagonal(Lc, axis1=-2, axis2=-1)), -1)
-            y = np.linalg.solve(Lc, np.broadcast_to(res[..., None], S.shape[:-1] + (1,)))
-            d2 = np.sum(y[..., 0] ** 2, -1)
+            sr2 = np.exp(2 * (lr + np.linspace(-span, span, steps)))[:, None, None]
+            st2 = np.exp(2 * (lt + np.linspace(-span, span, steps)))[None, :, None]
+            perp = 2 * st2 + 0.5 * sr2 * L2
+            d2 = rr2 / (2 * sr2) + upar2 / (2 * st2) + uperp2 / perp
+            logdet = 3 * np.log(2 * sr2) + np.log(2 * st2) + 2 * np.log(perp)
             rho = np.where(d2 <= gate, d2, 2.0 * np.sqrt(gate * d2) - gate)
             nll = np.sum(rho + logdet, -1)
-            k = np.unravel_index(np.argmin(nll), SR.shape)
-            lr, lt = gr[k[0]], gt[k[1]]
+            k = np.unravel_index(np.argmin(nll), nll.shape)
+            lr = lr + np.linspace(-span, span, steps)[k[0]]
+            lt = lt + np.linspace(-span, span, steps)[k[1]]
         self.sr = max(np.exp(lr), self.floor_rot)
         self.st = max(np.exp(lt), self.floor_trans)
 
