@@ -302,7 +302,11 @@ class Lms2xxDriver(LaserDriver):
 
     ``session_baud`` is the rate used while streaming (default: the URL's ``baud`` option,
     else 38400; 500000 needs RS-422).  ``angle``/``resolution`` select the variant,
-    ``units`` ("cm"/"mm") and ``measuring_mode`` the config block; None keeps the device's.
+    ``units`` ("cm"/"mm"), ``measuring_mode`` and ``realtime_indices`` (availability flag
+    0x02: a one-byte scan counter in each B0, given as ``device_stamp``) the config block;
+    None keeps the device's setting.  ``restore_baud`` returns the LMS to 9600 on close.
+    A reconnect inside :meth:`read_scan` (baud probing, init) may take up to about 2 s
+    beyond the call's timeout.
     """
 
     model = "lms2xx"
@@ -311,6 +315,7 @@ class Lms2xxDriver(LaserDriver):
     def __init__(self, device: str | Transport, timeout: float = 0.5, *,
                  session_baud: int | None = None, angle: int = 180, resolution: float = 1.0,
                  units: str | None = "cm", measuring_mode: int | None = None,
+                 realtime_indices: bool | None = None, restore_baud: bool = True,
                  baud_switch_delay: float = 0.05, probe_timeout: float = 0.25,
                  **kw) -> None:
         super().__init__(device, timeout, **kw)
@@ -326,6 +331,8 @@ class Lms2xxDriver(LaserDriver):
         self.session_baud = session_baud
         self.angle, self.resolution = angle, resolution
         self.units, self.measuring_mode_wanted = units, measuring_mode
+        self.realtime_indices = realtime_indices
+        self.restore_baud = restore_baud
         self.baud_switch_delay = baud_switch_delay
         self.probe_timeout = probe_timeout
         self.parser = FrameParser(self.errors)
@@ -494,6 +501,10 @@ class Lms2xxDriver(LaserDriver):
         if self.measuring_mode_wanted is not None and config[5] != self.measuring_mode_wanted:
             config[5] = self.measuring_mode_wanted
             changed = True
+        if self.realtime_indices is not None and \
+                bool(config[4] & 0x02) != self.realtime_indices:
+            config[4] ^= 0x02
+            changed = True
         if changed:
             self.write_config(config)
         self.measuring_mode = config[5]
@@ -505,6 +516,8 @@ class Lms2xxDriver(LaserDriver):
     def _stop(self) -> None:
         if self.streaming:
             self.stop_streaming()
+        if self.restore_baud and self.device_baud not in (None, 9600):
+            self.set_baud(9600)  # as sicktoolbox does: leave the LMS at its power-on rate
 
     # -- scans --------------------------------------------------------------------------------
     def _scan_from(self, ev: Event) -> LaserScan | None:

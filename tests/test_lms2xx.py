@@ -297,9 +297,10 @@ def test_mm_units_and_interlaced_quarter_degree(twin):
 def test_half_degree_interlaced_and_realtime_index(tmp_path):
     with Lms2xxTwin("room", link=str(tmp_path / "tty"), interlace_half=True,
                     time_scale=2.0) as tw:
-        tw.config[4] |= 0x02   # availability: send real-time indices
-        with _driver(tw, resolution=0.5) as drv:
+        with _driver(tw, resolution=0.5, realtime_indices=True) as drv:
+            assert tw.config[4] & 0x02   # availability: send real-time indices
             scans = list(drv.scans(4, timeout=3.0))
+        assert tw.baud == 9600 and not tw.streaming   # close() restores the power-on rate
     assert [len(s.ranges) for s in scans] == [361] * 4
     stamps = [s.device_stamp for s in scans]
     assert all(isinstance(v, int) for v in stamps)
