@@ -407,6 +407,8 @@ class BallAccumulator:
 
     Ring i covers theta in [i dt, (i+1) dt); it has max(1, round(2 pi sin(theta_i) / dt))
     phi cells, theta_i the ring's centre. Cell ids are laid out ring after ring, then by shell.
+    Counters are kept sparse (the votes' cell ids), so a far outlier that stretches the rho
+    range costs no memory.
     """
 
     def __init__(self, theta_step: float, rho_step: float, rho_max: float):
@@ -420,7 +422,7 @@ class BallAccumulator:
         self.ring_start = np.concatenate([[0], np.cumsum(self.ring_cells)[:-1]])
         self.cells_per_shell = int(self.ring_cells.sum())
         self.n_shells = int(np.ceil(rho_max / rho_step)) + 1
-        self.counts = np.zeros(self.cells_per_shell * self.n_shells, dtype=np.int64)
+        self._votes: list[np.ndarray] = []
 
     def cell_of(self, theta: np.ndarray, phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
         ring = np.minimum((theta / np.pi * self.n_rings).astype(np.int64), self.n_rings - 1)
@@ -437,10 +439,16 @@ class BallAccumulator:
         return float(self.ring_theta[ring]), float(phi), (shell + 0.5) * self.rho_step
 
     def vote(self, cells: np.ndarray) -> None:
-        self.counts += np.bincount(cells, minlength=len(self.counts))
+        self._votes.append(np.asarray(cells, dtype=np.int64))
 
     def reset(self) -> None:
-        self.counts[:] = 0
+        self._votes = []
+
+    def counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cell ids, vote counts) of every cell with a vote."""
+        if not self._votes:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.unique(np.concatenate(self._votes), return_counts=True)
 
 
 def hough_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
@@ -471,6 +479,7 @@ def hough_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
         ball = acc[0]
         ball.reset()
         all_n, all_r, all_c = [], [], []
+        ids, votes = ball.counts()
         for _ in range(max_rounds):
             tri = voxels.triples(votes_per_round, rng, cl.active, cl.remaining)
             normals, rhos = _planes_from_triples(cl.pts, tri, voxels.min_area2)
@@ -480,13 +489,14 @@ def hough_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
             all_n.append(normals)
             all_r.append(rhos)
             all_c.append(cells)
-            if ball.counts.max() >= min_votes:
+            ids, votes = ball.counts()
+            if len(votes) and votes.max() >= min_votes:
                 break
-        if ball.counts.max() < min_votes:
+        if not len(votes) or votes.max() < min_votes:
             return None
         normals, rhos, cells = (np.concatenate(x) for x in (all_n, all_r, all_c))
-        k = min(peaks, int(np.count_nonzero(ball.counts >= min_votes)))
-        top = np.argpartition(-ball.counts, k - 1)[:k]
+        k = min(peaks, int(np.count_nonzero(votes >= min_votes)))
+        top = ids[np.argpartition(-votes, k - 1)[:k]]
         # candidates: per peak cell, the median of its votes (sorting groups them)
         mine = np.isin(cells, top)
         order = np.argsort(cells[mine], kind="stable")
