@@ -171,8 +171,13 @@ def _motion_rows(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     <A>_2 is the screw line of A (scaled by sin of the half angle, the pitch in the e_i einf
     part); the products run through the geometric-product tensor of the motor basis."""
     a, b = motor_from_matrix(A).v @ _COORDS, motor_from_matrix(B).v @ _COORDS  # (K, 8)
-    # Same screw angle on both sides: align the motor signs by their scalar parts.
+    # Same screw angle on both sides: align the motor signs by their scalar parts.  Near a
+    # half turn both scalar parts vanish and noise can pick the wrong sign: such motions
+    # are dropped while enough others remain (the refinement still uses their poses).
     b = b * np.where(a[:, :1] * b[:, :1] < 0, -1.0, 1.0)
+    clear = (np.abs(a[:, 0]) > 0.02) | (np.abs(b[:, 0]) > 0.02)
+    if clear.sum() >= 2:
+        a, b = a[clear], b[clear]
     la, lb = a.copy(), b.copy()
     la[:, [0, _E123INF]] = 0.0  # keep the bivector (line) parts
     lb[:, [0, _E123INF]] = 0.0
