@@ -60,6 +60,7 @@ class DetectedPlane:
             "area": round(float(self.area), 5),
             "corners": np.round(self.corners, 5).tolist(),
             "extent": np.round(self.extent, 5).tolist(),
+            "cga": np.round(self.cga().v, 9).tolist(),  # OPNS plane, 32 blade coefficients
         }
 
 

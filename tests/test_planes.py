@@ -183,7 +183,8 @@ def test_plane_record_is_consistent(bench_scene):
         np.testing.assert_allclose(p.extent @ p.normal, p.rho, atol=1e-6)
         assert np.abs(pts[p.inlier_index] @ p.normal - p.rho).max() < 0.03
         d = p.to_dict()
-        assert set(d) >= {"normal", "rho", "inliers", "hough", "corners", "extent"}
+        assert set(d) >= {"normal", "rho", "inliers", "hough", "corners", "extent", "cga"}
+        assert len(d["cga"]) == 32
 
 
 @pytest.mark.parametrize("method", ["ransac", "hough"])
@@ -226,6 +227,11 @@ def test_detection_repeats_with_a_seed_and_handles_tiny_input(bench_scene):
     a = detect_planes(pts, "hough", prm, seed=11)
     b = detect_planes(pts, "hough", prm, seed=11)
     assert [p.inliers for p in a] == [p.inliers for p in b]
+    # one far outlier stretches the rho range of the accumulator a thousandfold: no matter
+    far = np.vstack([pts, [[1e4, 0.0, 0.0]]])
+    got = detect_planes(far, "hough", prm, seed=11)
+    assert len(got) == len(a) == 3
+    np.testing.assert_allclose([p.inliers for p in got], [p.inliers for p in a], rtol=0.03)
     assert detect_planes(np.zeros((0, 3))) == []
     assert detect_planes(np.full((10, 10, 3), np.nan)) == []
     with pytest.raises(ValueError, match="unknown plane method"):
