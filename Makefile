@@ -37,3 +37,30 @@ lint: $(STAMP_TEST)
 
 clean:
 	rm -rf $(VENV) build *.egg-info
+
+# --- the daemon as a systemd service (run as root on the robot) --------------------------
+PREFIX_UNIT ?= /etc/systemd/system
+UDEV_RULES ?= /etc/udev/rules.d
+CONF_DIR ?= /etc/cgamap
+SERVICE_USER ?= cgamap
+
+.PHONY: install-service soak
+install-service: $(STAMP_RUN)
+	$(BIN)/cgamapd --check-config config/robot.yaml
+	getent group plugdev >/dev/null || groupadd --system plugdev
+	getent passwd $(SERVICE_USER) >/dev/null || useradd --system --user-group \
+		--home-dir /var/lib/cgamap --no-create-home --shell /usr/sbin/nologin \
+		--groups dialout,plugdev $(SERVICE_USER)
+	install -d -m 0755 $(CONF_DIR)
+	for f in robot.yaml hand_eye.yaml; do \
+		[ -e $(CONF_DIR)/$$f ] || install -m 0644 config/$$f $(CONF_DIR)/$$f; done
+	sed 's|/usr/local/bin/cgamapd|$(abspath $(BIN))/cgamapd|g' systemd/cgamapd.service \
+		> $(PREFIX_UNIT)/cgamapd.service
+	install -m 0644 systemd/99-cgamap-serial.rules $(UDEV_RULES)/99-cgamap-serial.rules
+	-udevadm control --reload-rules && udevadm trigger --subsystem-match=usb-serial
+	-systemctl daemon-reload
+	@echo "installed; start with: systemctl enable --now cgamapd"
+
+# >= 200 SIGKILLs of cgamapd (and of the bare store) while checkpointing
+soak: $(STAMP_TEST)
+	$(BIN)/python -m pytest -m slow -k soak tests/test_store.py tests/test_daemon_faults.py
