@@ -525,6 +525,17 @@ def detect_planes(cloud: np.ndarray, method: str = "ransac",
     raise ValueError(f"unknown plane method {method!r} (ransac, hough)")
 
 
+def plane_error(n1, rho1: float, n2, rho2: float) -> tuple[float, float]:
+    """(angle in degrees, |rho difference|) between two planes n.x = rho, as planes: the
+    pair (n, rho) and (-n, -rho) is the same plane, so the better of the two readings of
+    the second counts (this matters near rho = 0, where the canonical sign flips)."""
+    n1 = np.asarray(n1, float) / np.linalg.norm(n1)
+    n2 = np.asarray(n2, float) / np.linalg.norm(n2)
+    c = float(n1 @ n2)
+    s = 1.0 if c >= 0 else -1.0
+    return float(np.degrees(np.arccos(min(1.0, abs(c))))), abs(float(rho1) - s * float(rho2))
+
+
 def normal_angle_deg(n1: np.ndarray, n2: np.ndarray) -> float:
     """Angle between two plane normals in degrees, orientation ignored."""
     c = abs(float(np.dot(n1, n2)) / (np.linalg.norm(n1) * np.linalg.norm(n2)))

@@ -24,9 +24,15 @@ from cgamap.mapping.planes import (
     PlaneParams,
     detect_planes,
     normal_angle_deg,
+    plane_error,
 )
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+
+def _within(err: tuple[float, float], deg: float, metres: float) -> bool:
+    return err[0] < deg and err[1] < metres
+
 
 # ---- readers -------------------------------------------------------------------------------
 
@@ -142,7 +148,7 @@ def _match(planes, truth):
     """Worst (angle deg, |d rho| m) over the truth planes, each matched to its best plane."""
     worst = (0.0, 0.0)
     for n, rho in truth:
-        errs = [(normal_angle_deg(p.normal, n), abs(p.rho - rho)) for p in planes]
+        errs = [plane_error(p.normal, p.rho, n, rho) for p in planes]
         best = min(errs, key=lambda e: e[0] + 100 * e[1])
         worst = (max(worst[0], best[0]), max(worst[1], best[1]))
     return worst
@@ -265,7 +271,7 @@ def test_cli_json_on_npy_cloud(tmp_path, capsys):
     assert len(planes) == 3
     assert [p["inliers"] for p in planes] == sorted((p["inliers"] for p in planes), reverse=True)
     for n, rho in truth:
-        assert any(normal_angle_deg(p["normal"], n) < 0.5 and abs(p["rho"] - rho) < 0.01
+        assert any(_within(plane_error(p["normal"], p["rho"], n, rho), 0.5, 0.01)
                    for p in planes)
 
 

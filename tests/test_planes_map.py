@@ -13,7 +13,12 @@ from cgamap.mapping.configurations import find_configurations
 from cgamap.mapping.pcd import read_ply
 from cgamap.mapping.places import PlaceDatabase, place_features
 from cgamap.mapping.planemap import MapPlane, PlaneMap, polygon_gap
-from cgamap.mapping.planes import PlaneParams, detect_planes, normal_angle_deg
+from cgamap.mapping.planes import PlaneParams, detect_planes, plane_error
+
+
+def _within(err: tuple[float, float], deg: float, metres: float) -> bool:
+    return err[0] < deg and err[1] < metres
+
 
 # ---- plane map -----------------------------------------------------------------------------
 
@@ -50,7 +55,7 @@ def test_planes_merge_across_frames_into_one_map():
     assert len(pm.planes) == 3, [p.to_dict()["hough"] for p in pm.planes]
     for p in pm.planes:
         assert p.observations == 3
-        assert any(normal_angle_deg(p.normal, n) < 0.5 and abs(p.rho - r) < 0.01
+        assert any(_within(plane_error(p.normal, p.rho, n, r), 0.5, 0.01)
                    for n, r in truth)
         lo, hi = (p.extent @ [1.0, 0, 0]).min(), (p.extent @ [1.0, 0, 0]).max()
         assert lo < 0.1 and hi > 7.9  # the merged extent covers the whole corridor

@@ -12,6 +12,7 @@ from cgamap.mapping.planes import (
     fit_plane_lsq,
     largest_region,
     normal_angle_deg,
+    plane_error,
 )
 from conftest import require_data
 
@@ -71,12 +72,13 @@ def test_office1_largest_planes_match_careful_fit(office, office_reference, meth
     planes = detect_planes(office, method, OFFICE)
     assert len(planes) >= count
     for p in planes[:count]:
-        errs = [(normal_angle_deg(p.normal, n), abs(p.rho - r)) for n, r, _ in office_reference]
+        errs = [plane_error(p.normal, p.rho, n, r) for n, r, _ in office_reference]
         ang, drho = min(errs, key=lambda e: e[0] / 1.0 + e[1] / 0.02)
         assert ang < 1.0 and drho < 0.02, (p.normal, p.rho, ang, drho)
     # the reference's two largest planes (back wall, side wall) are the detector's two largest
     for (n, r, size), p in zip(office_reference[:2], planes[:2], strict=True):
-        assert normal_angle_deg(p.normal, n) < 1.0 and abs(p.rho - r) < 0.02
+        ang, drho = plane_error(p.normal, p.rho, n, r)
+        assert ang < 1.0 and drho < 0.02
         assert p.inliers == pytest.approx(size, rel=0.05)
 
 
@@ -99,7 +101,8 @@ def test_venus_disparity_is_piecewise_planar(shared_data):
         assert all(p.rms < 0.06 for p in top)
         found[method] = top
     for a, b in zip(found["ransac"], found["hough"], strict=True):
-        assert normal_angle_deg(a.normal, b.normal) < 0.5 and abs(a.rho - b.rho) < 0.2
+        ang, drho = plane_error(a.normal, a.rho, b.normal, b.rho)
+        assert ang < 0.5 and drho < 0.2
 
 
 def test_venus_sgbm_disparity_recovers_the_ground_truth_planes(shared_data):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from cgamap.daemon.cli import main as cli_main
 from cgamap.mapping.configurations import find_configurations
-from cgamap.mapping.planes import PlaneParams, detect_planes, normal_angle_deg
+from cgamap.mapping.planes import PlaneParams, detect_planes, plane_error
 
 stereo_render = pytest.importorskip("cgamap.drivers.sim.stereo_render")
 stereo = pytest.importorskip("cgamap.drivers.stereo")
@@ -32,7 +32,7 @@ def test_synthetic_stereo_corridor_walls_floor_and_configuration(corridor_frame)
     planes = detect_planes(pts, "ransac", STEREO)
     assert len(planes) >= 3
     for n, rho in CORRIDOR:
-        errs = [(normal_angle_deg(p.normal, n), abs(p.rho - rho)) for p in planes]
+        errs = [plane_error(p.normal, p.rho, n, rho) for p in planes]
         ang, drho = min(errs, key=lambda e: e[0] + 40 * e[1])
         assert ang < 2.0 and drho < 0.05, (n, rho, ang, drho)
     corridors = [c for c in find_configurations(planes) if c.kind == "corridor"]
