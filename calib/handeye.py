@@ -299,72 +299,86 @@ _CHI2_3_MEDIAN = 2.365973884375338  # median of chi-square with 3 degrees of fre
 
 
 class _NoiseModel:
-    """Per-pair whitening of the residuals.
+    """Per-pair whitening of the residuals r_i = (rotation vector, translation) of
+    Z_i = H_i X C_i against Y, in the base frame.
 
-    Each measured pose (head and camera) is taken to carry rotation noise sigma_r and
-    translation noise sigma_t per axis.  The head's rotation noise also moves the target
+    The head pose carries rotation noise (variance h per axis) and translation noise; the
+    camera's target pose carries its own.  The head's rotation noise also moves the target
     estimate by the lever arm L_i = t_Z - t_H, so the residual covariance is
-    [[2 sr^2 I, sr^2 [L]x], [sr^2 [L]x^T, 2 st^2 I + sr^2 [L]x [L]x^T]]; with ``lever=False``
-    the cross terms are dropped (diagonal whitening).  The two scales are estimated from the
-    residuals by a robust maximum likelihood (``estimate``)."""
+    [[a I, h [L]x], [h [L]x^T, b I + h [L]x [L]x^T]] with a = total rotation variance,
+    b = total translation variance, h = f a the head's share of a (0 <= f <= 1): f = 0 is a
+    precise head (all noise in the camera), f = 1/2 equal noise on both.  ``lever=False``
+    fixes f = 0.  a, b and f are estimated from the residuals by a robust maximum
+    likelihood (``estimate``)."""
 
     def __init__(self, floor_rot: float, floor_trans: float, lever: bool = True):
         self.floor_rot, self.floor_trans, self.lever = floor_rot, floor_trans, lever
-        self.sr = self.st = 1.0
+        self.a = self.b = 1.0
+        self.f = 0.5 if lever else 0.0
+
+    @property
+    def sr(self) -> float:
+        """Rotation noise per axis and per measured pose, shared equally (rad)."""
+        return float(np.sqrt(self.a / 2))
+
+    @property
+    def st(self) -> float:
+        return float(np.sqrt(self.b / 2))
 
     def estimate(self, res: np.ndarray, L: np.ndarray, gate: float = 22.46) -> None:
-        """Scales by a robust maximum likelihood: minimise sum_i rho(d_i^2) + log det Sigma_i
-        over (log sr, log st), on a coarse then finer grids around the median-based first
-        guess; rho is quadratic up to ``gate`` and grows as the square root beyond (Huber),
-        so gross outliers do not inflate the scales (a hard cap would let them shrink to 0)."""
-        sr0 = np.sqrt(np.median(np.sum(res[:, :3] ** 2, -1)) / (2 * _CHI2_3_MEDIAN))
-        st0 = np.sqrt(np.median(np.sum(res[:, 3:] ** 2, -1)) / (2 * _CHI2_3_MEDIAN))
-        lr, lt = np.log(max(sr0, self.floor_rot)), np.log(max(st0, self.floor_trans))
-        # Closed forms by the Schur complement of the rotation block: with u = r_t + L x r_r / 2
-        # (independent of the scales), d^2 = |r_r|^2 / (2 sr^2) + (u.l)^2 / (2 st^2)
-        # + |u_perp|^2 / (2 st^2 + sr^2 |L|^2 / 2) for l = L/|L|, and log det Sigma follows.
+        """Robust maximum likelihood: minimise sum_i rho(d_i^2) + log det Sigma_i over
+        (log a, log b, f) on a coarse then finer grids around the median-based first guess;
+        rho is quadratic up to ``gate`` and grows as the square root beyond (Huber), so gross
+        outliers do not inflate the scales (a hard cap would let them shrink to 0).
+
+        Closed forms by the Schur complement of the rotation block: with
+        u = r_t + f L x r_r, d^2 = |r_r|^2 / a + (u.l)^2 / b + |u_perp|^2 / (b + f(1-f) a |L|^2)
+        for l = L / |L|, and log det = 3 log a + log b + 2 log(b + f(1-f) a |L|^2)."""
         rr2 = np.sum(res[:, :3] ** 2, -1)
-        if self.lever:
-            u = res[:, 3:] + 0.5 * np.cross(L, res[:, :3])
-            L2 = np.sum(L**2, -1)
-            lhat = L / np.sqrt(np.where(L2 > 0, L2, 1.0))[:, None]
-            upar2 = np.einsum("ni,ni->n", u, lhat) ** 2
-            uperp2 = np.sum(u**2, -1) - upar2
-        else:
-            L2 = np.zeros(len(res))
-            upar2, uperp2 = np.zeros(len(res)), np.sum(res[:, 3:] ** 2, -1)
-        for span, steps in ((3.0, 13), (0.5, 11), (0.1, 11)):
-            sr2 = np.exp(2 * (lr + np.linspace(-span, span, steps)))[:, None, None]
-            st2 = np.exp(2 * (lt + np.linspace(-span, span, steps)))[None, :, None]
-            perp = 2 * st2 + 0.5 * sr2 * L2
-            d2 = rr2 / (2 * sr2) + upar2 / (2 * st2) + uperp2 / perp
-            logdet = 3 * np.log(2 * sr2) + np.log(2 * st2) + 2 * np.log(perp)
+        rt = res[:, 3:]
+        a0 = max(np.median(rr2) / _CHI2_3_MEDIAN, self.floor_rot**2)
+        b0 = max(np.median(np.sum(rt**2, -1)) / _CHI2_3_MEDIAN, self.floor_trans**2)
+        L2 = np.sum(L**2, -1)
+        lhat = L / np.sqrt(np.where(L2 > 0, L2, 1.0))[:, None]
+        c = np.cross(L, res[:, :3])  # perpendicular to L
+        t_par2 = np.einsum("ni,ni->n", rt, lhat) ** 2
+        t2, tc, c2 = np.sum(rt**2, -1), np.einsum("ni,ni->n", rt, c), np.sum(c**2, -1)
+        la, lb, f = np.log(a0), np.log(b0), self.f if self.lever else 0.0
+        for span, steps, fspan in ((4.0, 17, 0.5), (0.6, 13, 0.15), (0.1, 11, 0.03)):
+            ga = la + np.linspace(-span, span, steps)
+            gb = lb + np.linspace(-span, span, steps)
+            gf = (np.clip(f + np.linspace(-fspan, fspan, 11), 0.0, 1.0) if self.lever
+                  else np.zeros(1))
+            A = np.exp(ga)[:, None, None, None]
+            B = np.exp(gb)[None, :, None, None]
+            F = gf[None, None, :, None]
+            perp = B + F * (1 - F) * A * L2
+            uperp2 = t2 + 2 * F * tc + F**2 * c2 - t_par2
+            d2 = rr2 / A + t_par2 / B + uperp2 / perp
+            logdet = 3 * np.log(A) + np.log(B) + 2 * np.log(perp)
             rho = np.where(d2 <= gate, d2, 2.0 * np.sqrt(gate * d2) - gate)
             nll = np.sum(rho + logdet, -1)
-            k = np.unravel_index(np.argmin(nll), nll.shape)
-            lr = lr + np.linspace(-span, span, steps)[k[0]]
-            lt = lt + np.linspace(-span, span, steps)[k[1]]
-        self.sr = max(np.exp(lr), self.floor_rot)
-        self.st = max(np.exp(lt), self.floor_trans)
+            i, j, k = np.unravel_index(np.argmin(nll), nll.shape)
+            la, lb, f = ga[i], gb[j], float(gf[k])
+        self.a = max(np.exp(la), 2 * self.floor_rot**2)
+        self.b = max(np.exp(lb), 2 * self.floor_trans**2)
+        self.f = f
 
-    def covariances(self, L: np.ndarray, sr=None, st=None) -> np.ndarray:
-        """(..., n, 6, 6) residual covariances for scales sr, st (arrays broadcast first)."""
-        sr = np.atleast_1d(self.sr if sr is None else sr)[:, None, None, None]
-        st = np.atleast_1d(self.st if st is None else st)[:, None, None, None]
+    def covariances(self, L: np.ndarray) -> np.ndarray:
+        """(n, 6, 6) residual covariances."""
         n = len(L)
-        S = np.zeros((sr.shape[0], n, 6, 6))
-        S[..., :3, :3] = 2 * sr**2 * np.eye(3)
-        S[..., 3:, 3:] = 2 * st**2 * np.eye(3)
-        if self.lever:
-            K = skew(L)
-            S[..., :3, 3:] += sr**2 * K
-            S[..., 3:, :3] += sr**2 * np.swapaxes(K, -1, -2)
-            S[..., 3:, 3:] += sr**2 * (K @ np.swapaxes(K, -1, -2))
+        h = self.f * self.a
+        K = skew(L)
+        S = np.zeros((n, 6, 6))
+        S[:, :3, :3] = self.a * np.eye(3)
+        S[:, :3, 3:] = h * K
+        S[:, 3:, :3] = h * np.swapaxes(K, -1, -2)
+        S[:, 3:, 3:] = self.b * np.eye(3) + h * (K @ np.swapaxes(K, -1, -2))
         return S
 
     def whiteners(self, L: np.ndarray) -> np.ndarray:
         """(n, 6, 6) W_i with W_i^T W_i = Sigma_i^-1."""
-        return np.linalg.inv(np.linalg.cholesky(self.covariances(L)[0]))
+        return np.linalg.inv(np.linalg.cholesky(self.covariances(L)))
 
 
 def _lever(H: np.ndarray, Z: np.ndarray) -> np.ndarray:
@@ -461,12 +475,13 @@ def refine(H: np.ndarray, C: np.ndarray, X0: np.ndarray, *, huber: float = 3.0,
         head_T_cam=X, method="motor", base_T_target=Y, inliers=keep,
         residual_rot_deg=np.degrees(np.linalg.norm(res_all[:, :3], axis=-1)),
         residual_trans_m=np.linalg.norm(res_all[:, 3:], axis=-1),
-        sigma_rot_deg=float(np.degrees(noise.sr)), sigma_trans_m=float(noise.st),
+        sigma_rot_deg=float(np.degrees(noise.sr)), sigma_trans_m=noise.st,
         covariance=cov[:6, :6],
         std_rot_deg=np.degrees(np.sqrt(np.abs(np.diag(cov)[:3]))),
         std_trans_m=np.sqrt(np.abs(np.diag(cov)[3:6])),
     )
     out.info["chi2_reduced"] = chi2_red
+    out.info["head_noise_share"] = noise.f
     return out
 
 
