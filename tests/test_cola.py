@@ -160,6 +160,9 @@ def test_init_stream_stop_and_single_scan(twin):
         # inside an 8 m x 6 m room every beam hits something within 10 m
         assert np.nanmax(s.ranges) < 10.0 and np.nanmin(s.ranges) > 0.2
         assert np.diff([x.device_stamp for x in scans]).tolist() == [1] * 9
+        truth = {c: pose for c, _, *pose in twin.truth}   # ground truth by scan counter
+        x, y, _ = truth[s.device_stamp]
+        assert 0 < x < 8 and 0 < y < 6
         drv._stop()
         drv.transport.reset_input()
         time.sleep(0.2)

@@ -69,6 +69,9 @@ class ColaTwin:
         self.port = self.listener.getsockname()[1]
         self.clients: list[_Client] = []
         self.sent: collections.deque[tuple[bytes, bool]] = collections.deque(maxlen=200000)
+        # ground truth per generated scan: (device counter, sim time, x, y, theta)
+        self.truth: collections.deque[tuple[int, float, float, float, float]] = \
+            collections.deque(maxlen=200000)
         self.stats = collections.Counter()
         self._truncate = 0
         self._stall_until = 0.0
@@ -281,6 +284,7 @@ class ColaTwin:
         idx = np.arange(COUNT)
         sick_deg = (START_ANGLE + idx * STEP) / 1e4
         angles = np.radians(sick_deg - 90.0)
+        self.truth.append((self.scan_counter + 1, self.t_sim, *self.world.trajectory(self.t_sim)))
         r = self.world.scan(self.t_sim, angles, MAX_RANGE_MM / 1000.0, self.noise, self.rng)
         mm = np.where(np.isfinite(r), np.clip(np.rint(r * 1000.0), 1, MAX_RANGE_MM), 0)
         dist = mm.astype(np.int64)

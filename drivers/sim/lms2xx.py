@@ -126,6 +126,9 @@ class Lms2xxTwin:
             link = os.path.join(self._own_dir, "ttyLMS")
         self.pty = PtyDevice(link)
         self.sent: collections.deque[tuple[bytes, bool]] = collections.deque(maxlen=200000)
+        # ground truth per generated scan: (device counter, sim time, x, y, theta)
+        self.truth: collections.deque[tuple[int, float, float, float, float]] = \
+            collections.deque(maxlen=200000)
         self.stats = collections.Counter()
         self._truncate = 0
         self._stall_until = 0.0
@@ -375,6 +378,7 @@ class Lms2xxTwin:
         mask = (1 << bits) - 1
         unit_code = self.config[6] if self.config[6] in _UNIT else 0
         unit = _UNIT[unit_code]
+        self.truth.append((self.rt_counter, self.t_sim, *self.world.trajectory(self.t_sim)))
         r = self.world.scan(self.t_sim, angles, mask * unit, self.noise, self.rng)
         with np.errstate(invalid="ignore"):
             counts = np.where(np.isfinite(r), np.rint(r / unit), mask)
