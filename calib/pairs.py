@@ -174,6 +174,8 @@ def calibration_document(result, n_pairs: int, source: str | None = None,
             "noise_trans_mm": float(result.sigma_trans_m) * 1e3,
             "covariance": [[float(v) for v in row] for row in result.covariance],
         }
+        if "head_noise_share" in result.info:
+            doc["uncertainty"]["head_noise_share"] = float(result.info["head_noise_share"])
     if axes:
         doc["axes"] = axes
         if "axis_point" in axes:

@@ -155,3 +155,18 @@ def test_opencv_methods_agree_noise_free(method):
 def test_so3_log_exp_roundtrip_near_pi():
     w = np.array([[0, 0, np.pi - 1e-9], [np.pi - 1e-4, 0, 0], [1e-12, 0, 0], [0.3, -0.2, 0.1]])
     np.testing.assert_allclose(so3_exp(so3_log(so3_exp(w))), so3_exp(w), atol=1e-8)
+
+
+def test_noise_model_learns_where_the_noise_is():
+    from cgamap.calib.se3 import perturb
+
+    shares = {"camera only": [], "both": []}
+    for seed in range(6):
+        rng = np.random.default_rng(50 + seed)
+        p = make_problem(rng, n=30)
+        C = perturb(p.cam_T_target, rng, np.radians(0.2), 0.002)
+        shares["camera only"].append(he.solve(p.base_T_head, C).info["head_noise_share"])
+        H = perturb(p.base_T_head, rng, np.radians(0.2), 0.002)
+        shares["both"].append(he.solve(H, C).info["head_noise_share"])
+    assert np.median(shares["camera only"]) < 0.2
+    assert 0.25 < np.median(shares["both"]) < 0.75
