@@ -269,26 +269,32 @@ class HokuyoDriver(LaserDriver):
                 log.warning("%s: %s", self.url, ScipError(item.echo, item.status))
         return items
 
-    def _command(self, cmd: str, timeout: float | None = None) -> ScipReply:
-        """Send ``cmd`` and wait for the reply with the same echo (scans keep queueing)."""
-        self._send(cmd)
-        deadline = time.monotonic() + (self.command_timeout if timeout is None else timeout)
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                self.errors.timeout += 1
-                raise DeviceError(f"hokuyo: no reply to {cmd!r} within "
-                                  f"{self.command_timeout if timeout is None else timeout} s")
-            for item in self._pump(left):
-                if isinstance(item, ScipReply) and item.echo == cmd:
-                    return item
+    def _command(self, cmd: str, timeout: float | None = None, tries: int = 3) -> ScipReply:
+        """Send ``cmd`` and wait for the reply with the same echo (scans keep queueing).
+
+        A reply lost to a byte error is dropped by the parser, so the command is sent again
+        (every command used here is safe to repeat) up to ``tries`` times.
+        """
+        wait = self.command_timeout if timeout is None else timeout
+        for _ in range(max(1, tries)):
+            self._send(cmd)
+            deadline = time.monotonic() + wait
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.errors.timeout += 1
+                    break
+                for item in self._pump(left):
+                    if isinstance(item, ScipReply) and item.echo == cmd:
+                        return item
+        raise DeviceError(f"hokuyo: no reply to {cmd!r} within {wait:g} s ({tries} tries)")
 
     def _probe(self) -> None:
         """``QT`` until a SCIP 2.0 answer, switching from SCIP 1.1 / TM mode on the way."""
         last: Exception | None = None
         for _ in range(3):
             try:
-                reply = self._command("QT")
+                reply = self._command("QT", tries=1)
             except DeviceError as exc:
                 last = exc
                 continue
