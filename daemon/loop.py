@@ -172,70 +172,72 @@ class Mapper2D:
 
         seg = extract_segments(scan.ranges, scan.angle_min, scan.angle_increment,
                                self.m.params.segments)
-        fn = getattr(rl, "relocalize_scan", None) or getattr(rl, "relocalize", None)
-        if fn is None or not len(seg) or not len(self.m.map):
+        if len(seg) < 2 or len(self.m.map) < 2:
             return None
-        res = fn(seg, self.m.map)
-        if res is None:
+        res = rl.relocalize(self.m.map, seg)
+        if not res.found or res.pose is None:
             return None
-        pose = np.asarray(getattr(res, "pose", res), dtype=float)
-        score = float(getattr(res, "score", getattr(res, "quality", 1.0)))
-        return self._base(pose), score
+        return self._base(np.asarray(res.pose, dtype=float)), float(res.score)
 
 
 # -- the 3D plane map ---------------------------------------------------------------------
 
 
 class PlaneMap:
-    """Planes n.x = rho merged across frames (angle and offset gates, inlier-weighted)."""
+    """``mapping.planemap.PlaneMap`` (planes merged across frames, as CGA entities) behind
+    the loop's small interface; a plain angle/offset merge when that module is absent."""
 
-    def __init__(self, max_angle_deg: float = 8.0, max_offset: float = 0.15):
-        self.cos_gate = float(np.cos(np.deg2rad(max_angle_deg)))
-        self.max_offset = max_offset
-        self.planes: list[dict] = []
+    def __init__(self):
+        try:
+            from cgamap.mapping.planemap import PlaneMap as _PM
+        except ImportError:
+            _PM = None
+        self._cls = _PM
+        self.m = _PM() if _PM is not None else None
+        self.simple: list[dict] = []
+
+    @property
+    def planes(self) -> list:
+        return self.m.planes if self.m is not None else self.simple
 
     def integrate(self, detected: list) -> int:
-        changed = 0
-        for p in detected:
-            n, rho, w = np.asarray(p.normal, float), float(p.rho), float(p.inliers)
-            best = None
-            for q in self.planes:
-                if np.dot(n, q["normal"]) > self.cos_gate and abs(rho - q["rho"]) < \
-                        self.max_offset:
-                    best = q
-                    break
-            if best is None:
-                self.planes.append({"normal": n, "rho": rho, "weight": w, "seen": 1,
-                                    "corners": np.asarray(p.corners, float),
-                                    "area": float(p.area)})
+        if self.m is not None:
+            return len(self.m.add_planes(detected))
+        for p in detected:  # fallback: keep the larger of two planes that agree
+            n, rho = np.asarray(p.normal, float), float(p.rho)
+            same = [q for q in self.simple if np.dot(n, q["normal"]) > np.cos(np.radians(8))
+                    and abs(rho - q["rho"]) < 0.15]
+            if not same:
+                self.simple.append({"normal": n, "rho": rho, "area": float(p.area),
+                                    "corners": np.asarray(p.corners, float), "observations": 1})
             else:
-                tw = best["weight"] + w
-                nn = best["normal"] * best["weight"] + n * w
-                best["normal"] = nn / np.linalg.norm(nn)
-                best["rho"] = (best["rho"] * best["weight"] + rho * w) / tw
-                best["weight"], best["seen"] = tw, best["seen"] + 1
-                if p.area > best["area"]:
-                    best["corners"], best["area"] = np.asarray(p.corners, float), float(p.area)
-            changed += 1
-        return changed
+                same[0]["observations"] += 1
+        return len(detected)
 
     def as_list(self) -> list[dict]:
-        from cgamap.cga import hesse_to_hough3d
+        if self.m is not None:
+            out = []
+            for mp in self.m.planes:
+                d = mp.to_dict()
+                d.pop("extent", None)
+                d.pop("cga", None)
+                out.append(d)
+            return out
+        return [{"normal": q["normal"].tolist(), "rho": q["rho"], "area": q["area"],
+                 "corners": q["corners"].tolist(), "observations": q["observations"]}
+                for q in self.simple]
 
-        out = []
-        for q in self.planes:
-            t, ph, r = hesse_to_hough3d(q["normal"], q["rho"])
-            out.append({"normal": np.round(q["normal"], 5).tolist(), "rho": round(q["rho"], 4),
-                        "hough": [float(t), float(ph), float(r)], "seen": q["seen"],
-                        "area": round(q["area"], 3), "corners": np.round(q["corners"], 4).tolist()})
-        return out
+    def state(self) -> dict:
+        if self.m is not None:
+            return {"planemap": self.m.to_dict()}
+        return {"simple": self.simple}
 
-    def state(self) -> list[dict]:
-        return [dict(q) for q in self.planes]
-
-    def load_state(self, st: list[dict]) -> None:
-        self.planes = [{**q, "normal": np.asarray(q["normal"], float),
-                        "corners": np.asarray(q["corners"], float)} for q in st]
+    def load_state(self, st) -> None:
+        if isinstance(st, dict) and "planemap" in st and self._cls is not None:
+            self.m = self._cls.from_dict(st["planemap"])
+        elif isinstance(st, dict) and "simple" in st:
+            self.simple = [{**q, "normal": np.asarray(q["normal"], float),
+                            "corners": np.asarray(q["corners"], float)} for q in st["simple"]]
 
 
 # -- the loop -------------------------------------------------------------------------------
@@ -531,7 +533,7 @@ class MappingLoop:
     def load_state(self, st: dict) -> None:
         if st.get("map2d") is not None and self.mapper is not None:
             self.mapper.load_state(st["map2d"])
-        self.planes.load_state(st.get("map3d") or [])
+        self.planes.load_state(st.get("map3d") or {})
         self.pose = np.asarray(st.get("pose", (0, 0, 0)), dtype=float)
         if self.mapper is not None:
             self.mapper.set_pose(self.pose)
