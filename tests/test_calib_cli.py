@@ -222,3 +222,24 @@ def test_hardware_path_fails_with_one_clear_line(tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1 and "--pantilt" in err
     code, _, err = _run(["calib", "collect", "--pantilt", "x", "--camera", "nourl"], capsys)
     assert code == 2 and "MODEL://DEVICE" in err
+
+
+def test_hardware_path_plumbing_on_the_twins(tmp_path, capsys):
+    """--pantilt/--camera open the real driver (on the Dynamixel twin's pty) and the camera
+    grabber (synthetic backend, which shows no target): every pose is visited and skipped."""
+    from cgamap.drivers.sim.dynamixel import DynamixelBusTwin
+
+    twin = DynamixelBusTwin()
+    path = twin.start()
+    out = tmp_path / "p.json"
+    try:
+        code, stdout, err = _run(["calib", "collect", "--pantilt", path, "--camera",
+                                  "synthetic://corridor", "--poses", "3", "--settle", "0",
+                                  "--out", str(out)], capsys)
+    finally:
+        twin.stop()
+    assert code == 1 and "fewer than 3 usable poses" in err
+    doc = json.loads(out.read_text())
+    assert doc["pairs"] == []
+    assert [s["reason"] for s in doc["skipped"]] == ["target not found"] * 3
+    assert "K" in doc["intrinsics"]  # taken from the grabber's frames
