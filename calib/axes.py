@@ -32,6 +32,28 @@ def joint_motor(point: np.ndarray, direction: np.ndarray, angle: np.ndarray) -> 
     return translator(p) * rotor(d, angle) * translator(-p)
 
 
+def screw_axis(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Screw axes of rigid motions (..., 4, 4): (point closest to the origin, unit direction,
+    angle, slide along the axis).  With t_perp the translation across the axis,
+    p = (t_perp + cot(angle/2) d x t_perp) / 2."""
+    w = so3_log(T[..., :3, :3])
+    th = np.linalg.norm(w, axis=-1)
+    if np.any(th < 1e-9):
+        raise AxisCalibrationError("a motion without rotation has no screw axis")
+    d = w / th[..., None]
+    t = T[..., :3, 3]
+    slide = np.einsum("...i,...i->...", d, t)
+    tp = t - slide[..., None] * d
+    p = 0.5 * (tp + (1.0 / np.tan(th / 2))[..., None] * np.cross(d, tp))
+    return p, d, th, slide
+
+
+def screw_line(T: np.ndarray) -> Multivector:
+    """The screw axis of rigid motions as OPNS CGA lines (the line the motion turns about)."""
+    p, d, _, _ = screw_axis(T)
+    return line_from_point_direction(p, d)
+
+
 def _perp_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(d, a)
@@ -124,26 +146,25 @@ def calibrate_axes(cam_T_target, pan, tilt, base_T_target: np.ndarray | None = N
                    min_range_deg: float = 2.0, iters: int = 50) -> AxisCalibration:
     """Fit both joint axes from the target's pose at known joint angles.
 
-    Initial guess: pan along the target frame's direction of base z (or the mean rotation
-    axis), tilt perpendicular to it, both through the centroid of the camera positions; the
-    fit then refines lines and T0 by Levenberg-Marquardt.  With ``base_T_target`` the result
-    is expressed in the base frame."""
+    Initial guess: the screw axes of the camera's motions between the two poses that differ
+    most in one joint and least in the other (with ``base_T_target``, directions along base z
+    and y); the fit then refines lines and T0 by Levenberg-Marquardt.  With ``base_T_target``
+    the result is expressed in the base frame."""
     C = np.asarray(cam_T_target, float)
     pan, tilt = np.asarray(pan, float), np.asarray(tilt, float)
     for name, q in (("pan", pan), ("tilt", tilt)):
         if np.degrees(np.ptp(q)) < min_range_deg:
             raise AxisCalibrationError(f"the {name} joint moves less than {min_range_deg} deg")
     T_obs = inv(C)  # target_T_cam
-    centre = T_obs[:, :3, 3].mean(0)
-    if base_T_target is not None:
+    # Screw axes of the camera's motions with the largest pan / tilt spread (CGA lines).
+    p1, d1 = _axis_between(T_obs, pan, tilt)
+    p2, d2 = _axis_between(T_obs, tilt, pan)
+    if base_T_target is not None:  # directions known up to the mount: base z and y
         Rt = base_T_target[:3, :3].T
         d1, d2 = Rt @ np.array([0, 0, 1.0]), Rt @ np.array([0, 1.0, 0])
-    else:  # rotation axes of the camera between the poses with the largest pan / tilt spread
-        d1 = _axis_between(T_obs, pan, tilt)
-        d2 = _axis_between(T_obs, tilt, pan)
     best = None
     for s2 in (1.0, -1.0):  # the tilt direction's sign is not known without the base frame
-        par = _Params(centre, d1, centre, s2 * d2, np.eye(4))
+        par = _Params(p1, d1, p2, s2 * d2, np.eye(4))
         # T0 from the first pose with the current axes.
         M0 = _model(par, pan[:1], tilt[:1])[0]
         par.T0 = inv(M0) @ T_obs[0]
@@ -169,15 +190,15 @@ def calibrate_axes(cam_T_target, pan, tilt, base_T_target: np.ndarray | None = N
                            0.5 * (p1 + p2), rms_rot, rms_t, frame)
 
 
-def _axis_between(T_obs, q, other) -> np.ndarray:
-    """Rotation axis of the camera between the two poses that differ most in ``q`` and least
-    in ``other`` (a rough initial direction)."""
+def _axis_between(T_obs, q, other) -> tuple[np.ndarray, np.ndarray]:
+    """Screw axis (point, direction) of the camera's motion between the two poses that differ
+    most in ``q`` and least in ``other``: a rough initial line for that joint."""
     n = len(q)
     i, j = np.triu_indices(n, 1)
     score = np.abs(q[i] - q[j]) - 3.0 * np.abs(other[i] - other[j])
     k = np.argmax(score)
-    w = so3_log(T_obs[j[k], :3, :3] @ T_obs[i[k], :3, :3].T)
-    return w / np.linalg.norm(w) * np.sign(q[j[k]] - q[i[k]])
+    p, d, _, _ = screw_axis(T_obs[j[k]] @ inv(T_obs[i[k]]))  # motion in the target frame
+    return p, d * np.sign(q[j[k]] - q[i[k]])
 
 
 def _lm(par: _Params, pan, tilt, T_obs, iters: int) -> tuple[_Params, float]:

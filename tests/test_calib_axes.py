@@ -11,6 +11,8 @@ from cgamap.calib.axes import (
     calibrate_axes,
     common_perpendicular,
     joint_motor,
+    screw_axis,
+    screw_line,
 )
 from cgamap.calib.collect import pose_set
 from cgamap.calib.se3 import inv, make_pose, perturb, so3_exp
@@ -81,3 +83,20 @@ def test_axes_refuse_a_still_joint():
     with pytest.raises(AxisCalibrationError, match="parallel"):
         common_perpendicular(np.zeros(3), np.array([0, 0, 1.0]), np.ones(3),
                              np.array([0, 0, 1.0]))
+
+
+def test_screw_axis_of_a_joint_motion_is_its_line():
+    p, d = np.array([0.3, -0.1, 2.0]), np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1, 2, -0.5])
+    T = motor_to_matrix(joint_motor(p, d, np.array(0.7)))
+    T[:3, 3] += 0.05 * d  # plus a slide along the axis: a screw
+    q, e, angle, slide = screw_axis(T)
+    np.testing.assert_allclose(e, d, atol=1e-12)
+    assert abs(angle - 0.7) < 1e-12 and abs(slide - 0.05) < 1e-12
+    assert np.linalg.norm(np.cross(q - p, d)) < 1e-12  # q lies on the line
+    assert abs(q @ d) < 1e-12  # and is its point closest to the origin
+    L = screw_line(T)
+    from cgamap.cga import line_point_direction
+
+    q2, e2 = line_point_direction(L)
+    np.testing.assert_allclose(q2, q, atol=1e-12)
+    np.testing.assert_allclose(e2, d, atol=1e-12)
