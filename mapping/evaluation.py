@@ -1,0 +1,64 @@
+"""Trajectory error against reference poses: ATE after rigid alignment, RPE over distance."""
+
+from __future__ import annotations
+
+import numpy as np
+from cgamap.cga import angle_diff
+
+
+def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
+    """(x, y, theta) of the rigid motion that best maps est positions onto ref (Kabsch)."""
+    pe, pr = est[:, :2], ref[:, :2]
+    ce, cr = pe.mean(0), pr.mean(0)
+    A = (pe - ce).T @ (pr - cr)
+    th = np.arctan2(A[0, 1] - A[1, 0], A[0, 0] + A[1, 1])
+    c, s = np.cos(th), np.sin(th)
+    t = cr - np.array([[c, -s], [s, c]]) @ ce
+    return float(t[0]), float(t[1]), float(th)
+
+
+def apply_pose(T, poses: np.ndarray) -> np.ndarray:
+    x, y, th = T
+    c, s = np.cos(th), np.sin(th)
+    out = np.empty_like(poses, dtype=float)
+    out[:, 0] = c * poses[:, 0] - s * poses[:, 1] + x
+    out[:, 1] = s * poses[:, 0] + c * poses[:, 1] + y
+    out[:, 2] = angle_diff(poses[:, 2] + th, 0.0)
+    return out
+
+
+def ate(est: np.ndarray, ref: np.ndarray) -> dict:
+    """Absolute trajectory error: RMS translation (m) and rotation (deg) after alignment."""
+    T = align_rigid_2d(est, ref)
+    al = apply_pose(T, est)
+    dt = np.linalg.norm(al[:, :2] - ref[:, :2], axis=-1)
+    dr = angle_diff(al[:, 2], ref[:, 2])
+    return {"ate_trans_m": float(np.sqrt(np.mean(dt ** 2))),
+            "ate_rot_deg": float(np.degrees(np.sqrt(np.mean(dr ** 2)))),
+            "ate_trans_max_m": float(dt.max())}
+
+
+def _relative(p: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    d = p[j, :2] - p[i, :2]
+    c, s = np.cos(p[i, 2]), np.sin(p[i, 2])
+    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1],
+                            angle_diff(p[j, 2], p[i, 2])])
+
+
+def rpe(est: np.ndarray, ref: np.ndarray, distance: float = 1.0) -> dict:
+    """Relative pose error over ``distance`` metres of (reference) travel: RMS of the
+    difference between estimated and reference relative motions."""
+    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ref[:, :2], axis=0),
+                                                              axis=-1))])
+    i = np.arange(len(ref))
+    j = np.searchsorted(travel, travel + distance)
+    ok = j < len(ref)
+    i, j = i[ok], j[ok]
+    if not len(i):
+        return {"rpe_trans_m": float("nan"), "rpe_rot_deg": float("nan"), "rpe_pairs": 0}
+    re, rr = _relative(est, i, j), _relative(ref, i, j)
+    dt = np.linalg.norm(re[:, :2] - rr[:, :2], axis=-1)
+    dr = angle_diff(re[:, 2], rr[:, 2])
+    return {"rpe_trans_m": float(np.sqrt(np.mean(dt ** 2))),
+            "rpe_rot_deg": float(np.degrees(np.sqrt(np.mean(dr ** 2)))),
+            "rpe_pairs": int(len(i))}

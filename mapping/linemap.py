@@ -1,0 +1,297 @@
+"""The global 2D line map: segments with accumulated fit moments and observation counts.
+
+Merging (issue 4, step 3): an observed segment that matches map segments (eq. 15 sphere test
++ angle + end-point distance, :mod:`.matching`) is fused with them: point counts, centroids
+and scatter matrices add (parallel-axis rule), the line is refitted by total least squares
+and its extent is the union of the projected extents.  Unmatched observations become new
+segments.  Short segments seen only once are aged out, and map segments that came to
+coincide (the same wall seen twice before the pose was pulled back) are fused periodically,
+so duplicate walls do not pile up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .matching import match_candidates
+from .segments import Segments, tls_from_moments
+
+
+@dataclass(frozen=True)
+class MapParams:
+    merge_angle: float = np.deg2rad(5.0)
+    merge_dist: float = 0.10       # end points within this of the map line
+    merge_margin: float = 0.30     # sphere enlargement: pieces this far apart along a wall join
+    age_scans: int = 12            # a segment seen once is judged after this many scans
+    age_min_length: float = 0.6    # ... and dropped if shorter than this
+    dedupe_every: int = 10
+    max_residual: float = 0.03     # a fusion must still be a line: joint RMS residual below
+
+
+@dataclass
+class LineMap:
+    """m segments: end points, moments of all fused points, counts, bookkeeping."""
+
+    a: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    b: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    n_pts: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    centroid: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    scatter: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    n_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    created: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    last_seen: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    metadata: dict = field(default_factory=dict)
+    # contributions: which scan (node) saw which segment, with the observation's moments and
+    # end points in that scan's laser frame, so the map can follow re-optimised poses
+    c_seg: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    c_node: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    c_n: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    c_cent: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    c_scat: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    c_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    c_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+    @property
+    def length(self) -> np.ndarray:
+        return np.linalg.norm(self.b - self.a, axis=-1)
+
+    def subset(self, keep) -> LineMap:
+        """The segments selected by boolean ``keep`` (contributions follow)."""
+        keep = np.asarray(keep, bool)
+        remap = np.where(keep, np.cumsum(keep) - 1, -1)
+        out = LineMap(self.a[keep], self.b[keep], self.n_pts[keep], self.centroid[keep],
+                      self.scatter[keep], self.n_obs[keep], self.created[keep],
+                      self.last_seen[keep], dict(self.metadata))
+        if len(self.c_seg):
+            new = remap[self.c_seg]
+            ok = new >= 0
+            out.c_seg, out.c_node, out.c_n = new[ok], self.c_node[ok], self.c_n[ok]
+            out.c_cent, out.c_scat = self.c_cent[ok], self.c_scat[ok]
+            out.c_a, out.c_b = self.c_a[ok], self.c_b[ok]
+        return out
+
+    def add_contributions(self, target: np.ndarray, node: int, seg_l: Segments) -> None:
+        k = len(target)
+        self.c_seg = np.concatenate([self.c_seg, target])
+        self.c_node = np.concatenate([self.c_node, np.full(k, node)])
+        self.c_n = np.concatenate([self.c_n, seg_l.n.astype(float)])
+        self.c_cent = np.concatenate([self.c_cent, seg_l.centroid])
+        self.c_scat = np.concatenate([self.c_scat, seg_l.scatter])
+        self.c_a = np.concatenate([self.c_a, seg_l.a])
+        self.c_b = np.concatenate([self.c_b, seg_l.b])
+
+    def append(self, seg: Segments, stamp: int) -> None:
+        k = len(seg)
+        self.a = np.concatenate([self.a, seg.a])
+        self.b = np.concatenate([self.b, seg.b])
+        self.n_pts = np.concatenate([self.n_pts, seg.n.astype(float)])
+        self.centroid = np.concatenate([self.centroid, seg.centroid])
+        self.scatter = np.concatenate([self.scatter, seg.scatter])
+        self.n_obs = np.concatenate([self.n_obs, np.ones(k, int)])
+        self.created = np.concatenate([self.created, np.full(k, stamp)])
+        self.last_seen = np.concatenate([self.last_seen, np.full(k, stamp)])
+
+
+def _rms(N, S) -> float:
+    _, ms, _ = tls_from_moments(np.atleast_1d(N), np.zeros((1, 2)), S[None])
+    return float(np.sqrt(ms[0]))
+
+
+def fuse(n, centroid, scatter, a, b):
+    """One segment from a group: summed moments, TLS line, union of projected extents."""
+    N = n.sum()
+    C = (n[:, None] * centroid).sum(0) / N
+    dc = centroid - C
+    S = scatter.sum(0) + np.einsum("i,ij,ik->jk", n, dc, dc)
+    d, _, _ = tls_from_moments(N, C[None], S[None])
+    d = d[0]
+    t = np.concatenate([(a - C) @ d, (b - C) @ d])
+    return N, C, S, C + t.min() * d, C + t.max() * d
+
+
+def _components(u: np.ndarray, v: np.ndarray, n: int) -> list[list[int]]:
+    """Connected components (of size >= 2) of n nodes joined by edges (u, v)."""
+    parent = list(range(n))
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for i, j in zip(u.tolist(), v.tolist(), strict=True):
+        ri, rj = find(i), find(j)
+        if ri != rj:
+            parent[ri] = rj
+    comp: dict[int, list[int]] = {}
+    for x in sorted(set(u.tolist()) | set(v.tolist())):
+        comp.setdefault(find(x), []).append(x)
+    return list(comp.values())
+
+
+def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
+              params: MapParams | None = None, seg_l: Segments | None = None,
+              node: int | None = None) -> np.ndarray:
+    """Fuse global-frame observations into the map (in place). Returns, per observation,
+    the index of the map segment it went into (after the update).  With ``seg_l`` (the same
+    segments in the laser frame) and ``node``, the observations are kept as contributions."""
+    params = params or MapParams()
+    k = len(seg_g)
+    if k == 0:
+        return np.zeros(0, int)
+    ok, _ = match_candidates(seg_g.a, seg_g.b, lmap.a, lmap.b, params.merge_angle,
+                             params.merge_dist, params.merge_margin)
+    ii, jj = np.nonzero(ok)
+    new = np.setdiff1d(np.arange(k), ii)
+    target = np.full(k, -1)
+    remove: list[int] = []
+    redirect_pairs: list[tuple[int, int]] = []
+    unfused: list[int] = []
+    for comp in _components(ii, jj + k, k + len(lmap)):
+        obs = [x for x in comp if x < k]
+        mp = [x - k for x in comp if x >= k]
+        n = np.concatenate([seg_g.n[obs].astype(float), lmap.n_pts[mp]])
+        c = np.concatenate([seg_g.centroid[obs], lmap.centroid[mp]])
+        S = np.concatenate([seg_g.scatter[obs], lmap.scatter[mp]])
+        a = np.concatenate([seg_g.a[obs], lmap.a[mp]])
+        b = np.concatenate([seg_g.b[obs], lmap.b[mp]])
+        N, C, Sm, pa, pb = fuse(n, c, S, a, b)
+        if _rms(N, Sm) > params.max_residual:
+            # not one wall after all (two walls, or a pose still off): keep them apart
+            unfused.extend(obs)
+            continue
+        j0 = mp[0]
+        lmap.a[j0], lmap.b[j0], lmap.n_pts[j0] = pa, pb, N
+        lmap.centroid[j0], lmap.scatter[j0] = C, Sm
+        lmap.n_obs[j0] = lmap.n_obs[mp].sum() + 1
+        lmap.created[j0] = lmap.created[mp].min()
+        lmap.last_seen[j0] = stamp
+        target[obs] = j0
+        remove.extend(mp[1:])
+        redirect_pairs.extend((r, j0) for r in mp[1:])
+    new = np.union1d(new, np.array(unfused, dtype=int))
+    start = len(lmap)
+    lmap.append(seg_g.subset(new), stamp)
+    target[new] = start + np.arange(len(new))
+    if seg_l is not None and node is not None:
+        lmap.add_contributions(target, node, seg_l)
+    if remove:
+        _redirect(lmap, redirect_pairs)
+        keep = np.ones(len(lmap), bool)
+        keep[remove] = False
+        remap = np.cumsum(keep) - 1
+        target = remap[target]
+        _assign(lmap, lmap.subset(keep))
+    return target
+
+
+def _redirect(lmap: LineMap, pairs: list[tuple[int, int]]) -> None:
+    """Point the contributions of fused-away segments at the segment they went into."""
+    if not len(lmap.c_seg):
+        return
+    red = np.arange(len(lmap))
+    for r, j0 in pairs:
+        red[r] = j0
+    lmap.c_seg = red[lmap.c_seg]
+
+
+_FIELDS = ("a", "b", "n_pts", "centroid", "scatter", "n_obs", "created", "last_seen",
+           "c_seg", "c_node", "c_n", "c_cent", "c_scat", "c_a", "c_b")
+
+
+def _assign(dst: LineMap, src: LineMap) -> None:
+    for name in _FIELDS:
+        setattr(dst, name, getattr(src, name))
+
+
+def age_out(lmap: LineMap, stamp: int, params: MapParams | None = None) -> int:
+    """Drop short segments seen only once long enough ago; returns how many went."""
+    params = params or MapParams()
+    drop = (lmap.n_obs <= 1) & (stamp - lmap.created > params.age_scans) & (
+        lmap.length < params.age_min_length)
+    if drop.any():
+        _assign(lmap, lmap.subset(~drop))
+    return int(drop.sum())
+
+
+def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = None) -> int:
+    """Fuse map segments that coincide (same wall twice); returns how many were removed.
+    With ``since``, only segments seen at or after that stamp are compared (against all)."""
+    params = params or MapParams()
+    m = len(lmap)
+    if m < 2:
+        return 0
+    rec = np.arange(m) if since is None else np.nonzero(lmap.last_seen >= since)[0]
+    if not len(rec):
+        return 0
+    ok_r, _ = match_candidates(lmap.a[rec], lmap.b[rec], lmap.a, lmap.b, params.merge_angle,
+                               params.merge_dist, 0.05)
+    ok_t, _ = match_candidates(lmap.a, lmap.b, lmap.a[rec], lmap.b[rec], params.merge_angle,
+                               params.merge_dist, 0.05)
+    ok_r &= ok_t.T  # both ways: each lies along the other
+    ok_r[np.arange(len(rec)), rec] = False
+    ii, jj = np.nonzero(ok_r)
+    ii = rec[ii]
+    if not len(ii):
+        return 0
+    remove: list[int] = []
+    for comp in _components(ii, jj, m):
+        N, C, S, pa, pb = fuse(lmap.n_pts[comp], lmap.centroid[comp], lmap.scatter[comp],
+                               lmap.a[comp], lmap.b[comp])
+        if _rms(N, S) > params.max_residual:
+            continue
+        j0 = comp[0]
+        lmap.a[j0], lmap.b[j0], lmap.n_pts[j0], lmap.centroid[j0], lmap.scatter[j0] = \
+            pa, pb, N, C, S
+        lmap.n_obs[j0] = lmap.n_obs[comp].sum()
+        lmap.created[j0] = lmap.created[comp].min()
+        lmap.last_seen[j0] = lmap.last_seen[comp].max()
+        remove.extend(comp[1:])
+        _redirect(lmap, [(r, j0) for r in comp[1:]])
+    keep = np.ones(m, bool)
+    keep[remove] = False
+    _assign(lmap, lmap.subset(keep))
+    return len(remove)
+
+
+def refresh(lmap: LineMap, poses: np.ndarray) -> None:
+    """Recompute every segment from its contributions seen from ``poses`` (n, 3) (laser
+    poses of the nodes): moments add up per segment, TLS refit, union of extents."""
+    if not len(lmap.c_seg):
+        return
+    P = np.asarray(poses)[lmap.c_node]
+    c, s = np.cos(P[:, 2]), np.sin(P[:, 2])
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    t = P[:, :2]
+    cg = np.einsum("kij,kj->ki", R, lmap.c_cent) + t
+    Sg = R @ lmap.c_scat @ np.swapaxes(R, 1, 2)
+    ag = np.einsum("kij,kj->ki", R, lmap.c_a) + t
+    bg = np.einsum("kij,kj->ki", R, lmap.c_b) + t
+    m = len(lmap)
+    seg, n = lmap.c_seg, lmap.c_n
+    N = np.bincount(seg, n, minlength=m)
+    has = N > 0
+    Nn = np.where(has, N, 1.0)
+    C = np.stack([np.bincount(seg, n * cg[:, 0], m), np.bincount(seg, n * cg[:, 1], m)], -1)
+    C /= Nn[:, None]
+    dc = cg - C[seg]
+    Sk = Sg + n[:, None, None] * np.einsum("ki,kj->kij", dc, dc)
+    S = np.zeros((m, 2, 2))
+    np.add.at(S, seg, Sk)
+    d, _, _ = tls_from_moments(Nn, C, S)
+    ta = np.einsum("ki,ki->k", ag - C[seg], d[seg])
+    tb = np.einsum("ki,ki->k", bg - C[seg], d[seg])
+    lo = np.full(m, np.inf)
+    hi = np.full(m, -np.inf)
+    np.minimum.at(lo, seg, np.minimum(ta, tb))
+    np.maximum.at(hi, seg, np.maximum(ta, tb))
+    lmap.n_pts = np.where(has, N, lmap.n_pts)
+    lmap.centroid = np.where(has[:, None], C, lmap.centroid)
+    lmap.scatter = np.where(has[:, None, None], S, lmap.scatter)
+    lmap.a = np.where(has[:, None], C + np.where(has, lo, 0)[:, None] * d, lmap.a)
+    lmap.b = np.where(has[:, None], C + np.where(has, hi, 0)[:, None] * d, lmap.b)

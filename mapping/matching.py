@@ -1,0 +1,118 @@
+"""Candidate pairs between segment sets: sphere test (eq. 15) + containment + (theta, rho).
+
+Each segment is the IPNS sphere whose equator is its point pair (eq. 12): centre the
+midpoint, radius half the length.  For two such vectors s1, s2 the seed's test (eq. 15) is the
+sign of (s1 ^ s2)^2 = (s1 . s2)^2 - s1^2 s2^2, evaluated here on the five vector coefficients
+with the G(4,1) metric (a closed form of the same product, exact for vectors):
+< 0 the spheres intersect, = 0 tangent, > 0 apart *or one inside the other* (DESIGN.md), so
+containment (centre distance <= |r1 - r2|) is accepted as a candidate too.  Spheres are
+enlarged by a margin so that nearby pieces of one wall (and small pose errors) still meet.
+
+Closeness in (theta, rho): the lines' undirected angle difference (eq. 9, wrap aware) and
+the distance of the observed segment's end points from the map line (the rho difference
+measured where the segment is, which unlike the raw rho difference does not grow with the
+distance from the origin).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from cgamap.cga import angle_diff
+
+_METRIC = np.array([1.0, 1.0, 1.0, 1.0, -1.0])  # e1, e2, e3, e+, e-
+
+
+def sphere_vectors(a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """(k, 5) IPNS sphere coefficients (e1, e2, e3, e+, e-) of segments a-b, eq. (12),
+    radius enlarged by ``margin``: s = up(c) - 1/2 r^2 einf."""
+    c = 0.5 * (a + b)
+    r = 0.5 * np.linalg.norm(b - a, axis=-1) + margin
+    half = 0.5 * (np.sum(c * c, axis=-1) - r * r)
+    # up(c) = c + half_sq einf + e0, einf = e- + e+, e0 = (e- - e+)/2
+    return np.column_stack([c, np.zeros(len(c)), half - 0.5, half + 0.5])
+
+
+def ipns_inner(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
+    """Pairwise inner products (k1, k2) of grade-1 G(4,1) coefficient vectors."""
+    return (s1 * _METRIC) @ s2.T
+
+
+def sphere_relation(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
+    """Eq. (15) for all pairs: (s1 ^ s2)^2 = (s1.s2)^2 - s1^2 s2^2, shape (k1, k2)."""
+    d12 = ipns_inner(s1, s2)
+    n1 = np.sum(s1 * s1 * _METRIC, axis=-1)
+    n2 = np.sum(s2 * s2 * _METRIC, axis=-1)
+    return d12 ** 2 - n1[:, None] * n2[None, :]
+
+
+def spheres_touch(a1, b1, a2, b2, margin: float = 0.0) -> np.ndarray:
+    """(k1, k2) bool: the segments' spheres (enlarged by margin) intersect, touch, or one
+    contains the other."""
+    s1, s2 = sphere_vectors(a1, b1, margin), sphere_vectors(a2, b2, margin)
+    q = sphere_relation(s1, s2)
+    c1, c2 = s1[:, :2], s2[:, :2]
+    d = np.linalg.norm(c1[:, None, :] - c2[None, :, :], axis=-1)
+    r1 = 0.5 * np.linalg.norm(b1 - a1, axis=-1) + margin
+    r2 = 0.5 * np.linalg.norm(b2 - a2, axis=-1) + margin
+    contained = d <= np.abs(r1[:, None] - r2[None, :])
+    scale = np.maximum(1.0, (r1[:, None] * r2[None, :]) ** 2)
+    return (q <= 1e-12 * scale) | contained
+
+
+def line_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = b - a
+    return np.arctan2(d[..., 1], d[..., 0])
+
+
+def undirected_angle_diff(phi1, phi2) -> np.ndarray:
+    """|difference| of undirected line angles, in [0, pi/2] (eq. 9 on doubled angles)."""
+    return 0.5 * np.abs(angle_diff(2.0 * np.asarray(phi1), 2.0 * np.asarray(phi2)))
+
+
+def line_normals(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals n (k, 2) and offsets c (k,) with n.x = c on the line through a, b."""
+    d = b - a
+    d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+    n = np.column_stack([-d[:, 1], d[:, 0]])
+    return n, np.sum(n * a, axis=-1)
+
+
+def endpoint_distances(a1, b1, a2, b2) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances (k1, k2) of segment set 1's end points from set 2's lines."""
+    n, c = line_normals(a2, b2)
+    da = a1 @ n.T - c[None, :]
+    db = b1 @ n.T - c[None, :]
+    return da, db
+
+
+def overlap_gap(a1, b1, a2, b2) -> np.ndarray:
+    """(k1, k2) gap along line 2 between the projections of segment 1 and segment 2
+    (negative: they overlap by that much)."""
+    d = b2 - a2
+    L = np.linalg.norm(d, axis=-1)
+    u = d / np.maximum(L, 1e-12)[:, None]
+    ta = np.einsum("ik,jk->ij", a1, u) - np.sum(a2 * u, axis=-1)[None, :]
+    tb = np.einsum("ik,jk->ij", b1, u) - np.sum(a2 * u, axis=-1)[None, :]
+    lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
+    return np.maximum(lo - L[None, :], -hi)
+
+
+def match_candidates(a1, b1, a2, b2, max_angle: float, max_dist: float,
+                     margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate matrix (k1, k2) and its cost (mean |end point distance| + angle term).
+
+    A pair is a candidate when the spheres meet (eq. 15 or containment, enlarged by
+    ``margin``, default ``max_dist``), the lines' angle differs by less than ``max_angle``, and
+    both end points of segment 1 lie within ``max_dist`` of line 2.
+    """
+    margin = max_dist if margin is None else margin
+    k1, k2 = len(a1), len(a2)
+    if k1 == 0 or k2 == 0:
+        return np.zeros((k1, k2), bool), np.zeros((k1, k2))
+    near = spheres_touch(a1, b1, a2, b2, margin)
+    dang = undirected_angle_diff(line_angle(a1, b1)[:, None], line_angle(a2, b2)[None, :])
+    da, db = endpoint_distances(a1, b1, a2, b2)
+    dist = np.maximum(np.abs(da), np.abs(db))
+    ok = near & (dang < max_angle) & (dist < max_dist)
+    cost = 0.5 * (np.abs(da) + np.abs(db)) + 0.5 * dang
+    return ok, np.where(ok, cost, np.inf)

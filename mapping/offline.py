@@ -1,0 +1,125 @@
+"""Offline runs over recorded scans: build a map from a log, relocalisation trials.
+
+Pure functions over arrays the caller has read (``mapping`` never reads devices or logs):
+scans are objects with ``ranges``, ``angle_min``, ``angle_increment``, ``stamp_ns`` and
+optionally ``pose_ref``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .evaluation import ate, rpe
+from .linemap import LineMap
+from .relocalize import DistanceField, RelocParams, relocalize
+from .segments import SegmentParams, extract_segments
+from .slam2d import Mapper, MapperParams
+
+
+@dataclass
+class BuildResult:
+    map: LineMap
+    poses: np.ndarray        # (n, 3) estimated laser poses (after the final optimisation)
+    stamps: np.ndarray       # (n,) seconds
+    report: dict
+
+
+def _stats_ms(ts) -> tuple[float, float]:
+    ms = np.asarray(ts) * 1e3
+    return (float(np.median(ms)), float(np.percentile(ms, 95))) if len(ms) else (0.0, 0.0)
+
+
+def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None = None,
+              progress: Callable[[int, int], None] | None = None) -> BuildResult:
+    """Run the mapper over ``scans`` with odometry poses (n, 3); score against the scans'
+    ``pose_ref`` when every scan has one."""
+    odometry = np.asarray(odometry, dtype=float)
+    mapper = Mapper(params, initial_pose=odometry[0] if len(odometry) else (0, 0, 0))
+    times = []
+    n = len(scans)
+    t_all = time.perf_counter()
+    for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True)):
+        t = time.perf_counter()
+        mapper.step(scan.ranges, scan.angle_min, scan.angle_increment, odo)
+        times.append(time.perf_counter() - t)
+        if progress is not None:
+            progress(k + 1, n)
+    t = time.perf_counter()
+    poses = mapper.finish()
+    t_final = time.perf_counter() - t
+    med, p95 = _stats_ms(times)
+    report = {
+        "scans_processed": n,
+        "segments": len(mapper.map),
+        "ms_per_scan_median": round(med, 3),
+        "ms_per_scan_p95": round(p95, 3),
+        "final_optimisation_ms": round(t_final * 1e3, 1),
+        "total_s": round(time.perf_counter() - t_all, 2),
+        "loop_closures": mapper.loops,
+        "optimisations": mapper.optimizations,
+    }
+    ref = [getattr(s, "pose_ref", None) for s in scans]
+    if n >= 2 and all(r is not None for r in ref):
+        R = np.array(ref, dtype=float)
+        report.update({k: round(v, 4) if isinstance(v, float) else v
+                       for k, v in {**ate(poses, R), **rpe(poses, R)}.items()})
+        odo = {**ate(odometry, R), **rpe(odometry, R)}
+        report["odometry"] = {k: round(v, 4) if isinstance(v, float) else v
+                              for k, v in odo.items()}
+    stamps = np.array([s.stamp_ns for s in scans], dtype=float) * 1e-9
+    return BuildResult(mapper.map, poses, stamps, report)
+
+
+def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0,
+                      params: RelocParams | None = None,
+                      segment_params: SegmentParams | None = None,
+                      truth: np.ndarray | None = None,
+                      max_trans: float = 0.2, max_rot_deg: float = 3.0,
+                      progress: Callable[[int, int], None] | None = None) -> dict:
+    """Relocalise ``trials`` scans drawn at random (seeded) with their poses hidden; success
+    when within ``max_trans`` and ``max_rot_deg`` of ``truth`` (default: scans' pose_ref)."""
+    rng = np.random.default_rng(seed)
+    n = len(scans)
+    if truth is None:
+        truth = np.array([s.pose_ref for s in scans], dtype=float)
+    idx = rng.choice(n, size=trials, replace=trials > n)
+    t0 = time.perf_counter()
+    field = DistanceField(lmap, (params or RelocParams()).field_resolution)
+    field_ms = (time.perf_counter() - t0) * 1e3
+    times, errs_t, errs_r, found = [], [], [], 0
+    for k, i in enumerate(idx):
+        s = scans[int(i)]
+        t = time.perf_counter()
+        seg = extract_segments(s.ranges, s.angle_min, s.angle_increment, segment_params)
+        res = relocalize(lmap, seg, field, params)
+        times.append(time.perf_counter() - t)
+        if res.found:
+            found += 1
+            d = res.pose - truth[int(i)]
+            et = float(np.hypot(d[0], d[1]))
+            er = float(abs((d[2] + np.pi) % (2 * np.pi) - np.pi))
+            if et <= max_trans and np.degrees(er) <= max_rot_deg:
+                errs_t.append(et)
+                errs_r.append(np.degrees(er))
+        if progress is not None:
+            progress(k + 1, trials)
+    med, p95 = _stats_ms(times)
+    succ = len(errs_t)
+    return {
+        "trials": int(trials),
+        "successes": succ,
+        "success_rate": round(succ / trials, 4) if trials else 0.0,
+        "found": found,
+        "median_ms": round(med, 2),
+        "p95_ms": round(p95, 2),
+        "distance_field_ms": round(field_ms, 1),
+        "success_error_trans_m": round(float(np.sqrt(np.mean(np.square(errs_t)))), 4)
+        if succ else None,
+        "success_error_rot_deg": round(float(np.sqrt(np.mean(np.square(errs_r)))), 3)
+        if succ else None,
+        "seed": seed,
+    }

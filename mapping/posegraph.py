@@ -1,0 +1,113 @@
+"""A 2D pose graph: nodes are scan poses, edges relative-pose measurements with information.
+
+The seeds' global-map matching pulls the pose back when the robot returns to a mapped place,
+but drift accumulated on the way is already in the map.  Closing the loop spreads that
+correction over the trajectory: sequential edges come from the scan-to-map corrections
+(eqs. 10-11), loop edges from matching a scan against the segments of an earlier visit, and
+the graph is solved by Gauss-Newton with a sparse normal matrix (robust Cauchy weights on the
+loop edges so that a wrong closure cannot bend the map).  The map segments are anchored to
+the scans that observed them (:mod:`.linemap`), so the map follows the optimised poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve
+
+
+def wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def relative(pi: np.ndarray, pj: np.ndarray) -> np.ndarray:
+    """(..., 3) motion from pose i to pose j, in i's frame."""
+    d = pj[..., :2] - pi[..., :2]
+    c, s = np.cos(pi[..., 2]), np.sin(pi[..., 2])
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
+                     wrap(pj[..., 2] - pi[..., 2])], axis=-1)
+
+
+@dataclass
+class PoseGraph:
+    poses: list = field(default_factory=list)          # (3,) arrays
+    ei: list = field(default_factory=list)
+    ej: list = field(default_factory=list)
+    z: list = field(default_factory=list)              # (3,) measured relative pose
+    info: list = field(default_factory=list)           # (3, 3)
+    loop: list = field(default_factory=list)           # robust (loop) edge?
+
+    def add_node(self, pose) -> int:
+        self.poses.append(np.asarray(pose, dtype=float).copy())
+        return len(self.poses) - 1
+
+    def add_edge(self, i: int, j: int, z, info, loop: bool = False) -> None:
+        self.ei.append(i)
+        self.ej.append(j)
+        self.z.append(np.asarray(z, dtype=float))
+        self.info.append(np.asarray(info, dtype=float))
+        self.loop.append(loop)
+
+    def residuals(self, X: np.ndarray | None = None) -> np.ndarray:
+        X = np.array(self.poses) if X is None else X
+        i, j = np.array(self.ei), np.array(self.ej)
+        e = relative(X[i], X[j]) - np.array(self.z)
+        e[:, 2] = wrap(e[:, 2])
+        return e
+
+    def optimize(self, iterations: int = 8, robust_scale: float = 3.0,
+                 fixed: int = 0) -> dict:
+        """Gauss-Newton over all poses (node ``fixed`` held); updates ``poses`` in place."""
+        n = len(self.poses)
+        if n < 2 or not self.ei:
+            return {"iterations": 0, "chi2": 0.0}
+        X = np.array(self.poses)
+        i, j = np.array(self.ei), np.array(self.ej)
+        Z, Om = np.array(self.z), np.array(self.info)
+        robust = np.array(self.loop)
+        chi2 = 0.0
+        for _ in range(iterations):
+            e = relative(X[i], X[j]) - Z
+            e[:, 2] = wrap(e[:, 2])
+            m2 = np.einsum("ki,kij,kj->k", e, Om, e)
+            w = np.where(robust, 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
+            chi2 = float(np.sum(w * m2))
+            c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
+            d = X[j, :2] - X[i, :2]
+            A = np.zeros((len(i), 3, 3))   # de/dx_i
+            B = np.zeros((len(i), 3, 3))   # de/dx_j
+            A[:, 0, 0], A[:, 0, 1] = -c, -s
+            A[:, 1, 0], A[:, 1, 1] = s, -c
+            A[:, 0, 2] = -s * d[:, 0] + c * d[:, 1]
+            A[:, 1, 2] = -c * d[:, 0] - s * d[:, 1]
+            A[:, 2, 2] = -1.0
+            B[:, 0, 0], B[:, 0, 1] = c, s
+            B[:, 1, 0], B[:, 1, 1] = -s, c
+            B[:, 2, 2] = 1.0
+            Wo = Om * w[:, None, None]
+            AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
+            blocks = [(i, i, AtW @ A), (i, j, AtW @ B), (j, i, BtW @ A), (j, j, BtW @ B)]
+            rows, cols, vals = [], [], []
+            r3 = np.arange(3)
+            for bi, bj, M in blocks:
+                rows.append((3 * bi[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
+                cols.append((3 * bj[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
+                vals.append(M.ravel())
+            # hold the fixed node with a stiff prior
+            rows.append(3 * fixed + r3)
+            cols.append(3 * fixed + r3)
+            vals.append(np.full(3, 1e9))
+            H = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                      np.concatenate(cols))), shape=(3 * n,) * 2)
+            g = np.zeros(3 * n)
+            np.add.at(g, 3 * i[:, None] + r3, np.einsum("kij,kj->ki", AtW, e))
+            np.add.at(g, 3 * j[:, None] + r3, np.einsum("kij,kj->ki", BtW, e))
+            dx = spsolve(H, -g).reshape(n, 3)
+            X = X + dx
+            X[:, 2] = wrap(X[:, 2])
+            if np.max(np.abs(dx)) < 1e-5:
+                break
+        self.poses = list(X)
+        return {"iterations": _ + 1, "chi2": chi2}

@@ -1,0 +1,253 @@
+"""Relocalisation in the Hough domain (seed 000 §V, PRL §5): a pose from one scan and a map.
+
+1. Both segment sets go to (theta, rho) (the map's in the global frame, the scan's in the
+   laser frame).
+2. Rotation hypotheses: every pairing of a map line with a scan line votes for its wrap-aware
+   angle difference (eq. 9), weighted by the shorter length, in a circular histogram taken
+   modulo pi (a line's normal may point either way depending on which side the origin is);
+   peaks give the rotor, refined by the average difference of the pairs in the peak, and each
+   peak is tried with +pi too.
+3. Translation: with the rotation fixed, a scan line l that lies on map line g gives
+   n_g . T = c_g - s c_l (s = +-1, the normals' relative sign).  Two scan lines of different
+   directions paired with two map lines of the same directions fix T; all such intersections
+   vote in a coarse grid over the map, and the best cells are the translation hypotheses.
+4. Verification: the fraction of scan points within ``inlier_dist`` of a map segment (a
+   distance field of the map, one lookup per point), then a refinement of the best few with
+   the point-to-line correction of :mod:`.correction`, and a ranked list.  "Not found" when
+   the best score is under ``min_score``.
+
+Symmetric places (corridors, identical rooms) give several hypotheses with similar scores; all
+are returned, ranked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .correction import CorrectionParams, correct_pose
+from .linemap import LineMap
+from .matching import line_normals
+from .segments import Segments
+
+
+@dataclass(frozen=True)
+class RelocParams:
+    angle_bin_deg: float = 1.0
+    rotation_peaks: int = 6          # rotation hypotheses (each also tried + pi)
+    min_pair_angle_deg: float = 30.0  # two scan lines used for translation differ by this
+    max_scan_lines: int = 6           # longest scan segments used for hypotheses
+    angle_tol_deg: float = 3.0        # map/scan line pairing under a rotation hypothesis
+    grid: float = 0.2                 # translation vote cell (m)
+    translation_peaks: int = 20       # cells verified per rotation hypothesis
+    overlap_slack: float = 0.3        # a scan segment may stick out of its map segment by
+    inlier_dist: float = 0.12
+    coarse_dist: float = 0.3          # first ranking of the (coarse) translation cells
+    refine: int = 6                   # best hypotheses refined by point-to-line matching
+    min_score: float = 0.5            # "not found" under this fraction of inlier points
+    field_resolution: float = 0.05
+    verify_points: int = 90
+
+
+@dataclass
+class Hypothesis:
+    pose: np.ndarray   # (x, y, theta) of the laser in the map frame
+    score: float       # fraction of scan points near map segments
+
+
+@dataclass
+class RelocResult:
+    found: bool
+    pose: np.ndarray | None
+    score: float
+    hypotheses: list[Hypothesis]
+
+
+class DistanceField:
+    """Distance (m) from any point to the nearest map segment, on a grid (cv2)."""
+
+    def __init__(self, lmap: LineMap, resolution: float = 0.05, border: float = 2.0):
+        pts = np.concatenate([lmap.a, lmap.b]) if len(lmap) else np.zeros((1, 2))
+        self.lo = pts.min(0) - border
+        hi = pts.max(0) + border
+        self.res = resolution
+        self.size = np.ceil((hi - self.lo) / resolution).astype(int) + 1
+        img = np.full((self.size[1], self.size[0]), 255, np.uint8)
+        pa = np.round((lmap.a - self.lo) / resolution).astype(np.int32)
+        pb = np.round((lmap.b - self.lo) / resolution).astype(np.int32)
+        for p, q in zip(pa, pb, strict=True):  # one draw per segment
+            cv2.line(img, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 0, 1)
+        self.dist = cv2.distanceTransform(img, cv2.DIST_L2, 5).astype(np.float32) * resolution
+        self.far = float(border)
+
+    def lookup(self, p: np.ndarray) -> np.ndarray:
+        """Distances for points (..., 2); points off the grid count as far."""
+        q = np.round((p - self.lo) / self.res).astype(np.int64)
+        ok = (q[..., 0] >= 0) & (q[..., 1] >= 0) & (q[..., 0] < self.size[0]) & (
+            q[..., 1] < self.size[1])
+        qx = np.clip(q[..., 0], 0, self.size[0] - 1)
+        qy = np.clip(q[..., 1], 0, self.size[1] - 1)
+        return np.where(ok, self.dist[qy, qx], self.far)
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _rotation_hypotheses(phi_g, len_g, phi_l, len_l, P: RelocParams) -> np.ndarray:
+    """Peaks of the length-weighted histogram of undirected angle differences (mod pi)."""
+    d = np.mod(phi_g[:, None] - phi_l[None, :], np.pi)
+    w = np.minimum(len_g[:, None], len_l[None, :])
+    nb = int(round(180.0 / P.angle_bin_deg))
+    idx = np.minimum((d / np.pi * nb).astype(int), nb - 1)
+    hist = np.bincount(idx.ravel(), w.ravel(), nb)
+    kern = np.array([0.25, 0.5, 1.0, 0.5, 0.25])
+    sm = sum(k * np.roll(hist, s) for k, s in zip(kern, range(-2, 3), strict=True))
+    peaks = np.nonzero((sm >= np.roll(sm, 1)) & (sm > np.roll(sm, -1)) & (sm > 0))[0]
+    peaks = peaks[np.argsort(-sm[peaks])][: P.rotation_peaks]
+    out = []
+    for pk in peaks:
+        centre = (pk + 0.5) * np.pi / nb
+        # refine: weighted circular mean (period pi) of the differences near the peak
+        dd = _wrap(2 * (d - centre)) / 2
+        near = np.abs(dd) < np.deg2rad(2.5 * P.angle_bin_deg)
+        if near.any():
+            centre = centre + np.sum(w[near] * dd[near]) / np.sum(w[near])
+        out.extend([centre, centre + np.pi])
+    return np.array(out)
+
+
+def _line_params(a: np.ndarray, b: np.ndarray):
+    n, c = line_normals(a, b)
+    phi = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
+    return n, c, np.mod(phi, np.pi)
+
+
+def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
+               params: RelocParams | None = None) -> RelocResult:
+    """Pose of the laser in the map from one scan's segments (laser frame) and points."""
+    P = params or RelocParams()
+    field = field or DistanceField(lmap, P.field_resolution)
+    if len(seg) < 2 or len(lmap) < 2:
+        return RelocResult(False, None, 0.0, [])
+    order = np.argsort(-seg.length)[: P.max_scan_lines]
+    sa, sb = seg.a[order], seg.b[order]
+    len_l = np.linalg.norm(sb - sa, axis=-1)
+    len_g = lmap.length
+    n_g, c_g, phi_g = _line_params(lmap.a, lmap.b)
+    _, c_l0, phi_l0 = _line_params(sa, sb)
+    rots = _rotation_hypotheses(phi_g, len_g, phi_l0, len_l, P)
+    pts = seg.points
+    if len(pts) > P.verify_points:
+        pts = pts[np.linspace(0, len(pts) - 1, P.verify_points).astype(int)]
+    tol = np.deg2rad(P.angle_tol_deg)
+    cand_T, cand_R = [], []
+    lo = field.lo
+    span = field.size * field.res
+    gshape = np.ceil(span / P.grid).astype(int) + 1
+    for th in rots:
+        c, s = np.cos(th), np.sin(th)
+        R = np.array([[c, -s], [s, c]])
+        ra, rb = sa @ R.T, sb @ R.T
+        n_l, c_l, phi_l = _line_params(ra, rb)
+        dphi = np.abs(_wrap(2 * (phi_g[:, None] - phi_l[None, :]))) / 2
+        pair = (dphi < tol) & (len_g[:, None] > 0.5 * len_l[None, :] - 0.3)
+        # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
+        sgn = np.sign(n_g @ n_l.T)
+        Ts = []
+        k = len(ra)
+        for i1 in range(k):          # loops over the few scan lines, not over points
+            for i2 in range(i1 + 1, k):
+                ang = np.abs(_wrap(2 * (phi_l[i1] - phi_l[i2]))) / 2
+                if ang < np.deg2rad(P.min_pair_angle_deg):
+                    continue
+                g1, g2 = np.nonzero(pair[:, i1])[0], np.nonzero(pair[:, i2])[0]
+                if not len(g1) or not len(g2):
+                    continue
+                A1, A2 = n_g[g1], n_g[g2]
+                d1 = c_g[g1] - sgn[g1, i1] * c_l[i1]
+                d2 = c_g[g2] - sgn[g2, i2] * c_l[i2]
+                # solve [A1; A2] T = [d1; d2] for all pairs (Cramer's rule)
+                a11, a12 = A1[:, None, 0], A1[:, None, 1]
+                a21, a22 = A2[None, :, 0], A2[None, :, 1]
+                det = a11 * a22 - a12 * a21
+                good = np.abs(det) > 0.3
+                tx = (d1[:, None] * a22 - a12 * d2[None, :]) / np.where(good, det, 1)
+                ty = (a11 * d2[None, :] - d1[:, None] * a21) / np.where(good, det, 1)
+                # both scan segments must lie on their map segments, not only on the lines
+                good &= _overlaps(lmap.a[g1], lmap.b[g1], ra[i1], rb[i1], tx, ty, 0,
+                                  P.overlap_slack)
+                good &= _overlaps(lmap.a[g2], lmap.b[g2], ra[i2], rb[i2], tx, ty, 1,
+                                  P.overlap_slack)
+                T = np.stack([tx[good], ty[good]], -1)
+                Ts.append(T)
+        if not Ts:
+            continue
+        T = np.concatenate(Ts)
+        cell = np.floor((T - lo) / P.grid).astype(int)
+        inside = np.all((cell >= 0) & (cell < gshape), axis=-1)
+        T, cell = T[inside], cell[inside]
+        if not len(T):
+            continue
+        flat = cell[:, 0] * gshape[1] + cell[:, 1]
+        votes = np.bincount(flat, minlength=gshape[0] * gshape[1])
+        top = np.argsort(-votes)[: P.translation_peaks]
+        top = top[votes[top] > 0]
+        # the hypothesis of a cell: mean of the intersections that fell in it
+        sums_x = np.bincount(flat, T[:, 0], votes.size)[top]
+        sums_y = np.bincount(flat, T[:, 1], votes.size)[top]
+        cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
+        cand_R.append(np.full(len(top), th))
+    if not cand_T:
+        return RelocResult(False, None, 0.0, [])
+    T = np.concatenate(cand_T)
+    th = np.concatenate(cand_R)
+    scores = _score(field, pts, T, th, P.coarse_dist)
+    best = np.argsort(-scores)[: max(P.refine * 3, P.refine)]
+    hyps: list[Hypothesis] = []
+    cp = CorrectionParams(prior_trans=0.3, prior_trans_per_m=0.0, prior_rot=0.1,
+                          prior_rot_per_m=0.0)
+    for b in best:
+        pose0 = np.array([T[b, 0], T[b, 1], _wrap(th[b])])
+        if any(np.hypot(*(h.pose[:2] - pose0[:2])) < 0.3 and abs(_wrap(h.pose[2] - pose0[2]))
+               < 0.05 for h in hyps):
+            continue
+        if len(hyps) >= P.refine:
+            break
+        corr = correct_pose(seg, lmap.a, lmap.b, pose0, 0.0, cp)
+        pose = corr.pose
+        sc = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist)[0])
+        hyps.append(Hypothesis(pose, sc))
+    hyps.sort(key=lambda h: -h.score)
+    if not hyps or hyps[0].score < P.min_score:
+        return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
+    return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _overlaps(ga: np.ndarray, gb: np.ndarray, la: np.ndarray, lb: np.ndarray, tx: np.ndarray,
+              ty: np.ndarray, axis: int, slack: float) -> np.ndarray:
+    """Bool grid like tx: scan segment la-lb moved by (tx, ty) overlaps map segment g (indexed
+    along ``axis`` of the grid) along g's line, with a gap of at most ``slack``."""
+    d = gb - ga
+    L = np.linalg.norm(d, axis=-1)
+    u = d / np.maximum(L, 1e-9)[:, None]
+    t1 = np.sum((la - ga) * u, axis=-1)
+    t2 = np.sum((lb - ga) * u, axis=-1)
+    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+    sh = (slice(None), None) if axis == 0 else (None, slice(None))
+    tu = tx * u[:, 0][sh] + ty * u[:, 1][sh]
+    return (hi[sh] + tu > -slack) & (lo[sh] + tu < L[sh] + slack)
+
+
+def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
+           inlier: float) -> np.ndarray:
+    """Fraction of points within ``inlier`` of the map for each pose hypothesis (T, th)."""
+    if not len(pts):
+        return np.zeros(len(T))
+    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+    gx = c * pts[None, :, 0] - s * pts[None, :, 1] + T[:, None, 0]
+    gy = s * pts[None, :, 0] + c * pts[None, :, 1] + T[:, None, 1]
+    d = field.lookup(np.stack([gx, gy], -1))
+    return np.mean(d < inlier, axis=-1)

@@ -1,0 +1,75 @@
+"""Pictures of a line map: PNG of segments + trajectory (OpenCV), and an occupancy image
+(PGM + YAML) in the ROS map_server convention."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .linemap import LineMap
+
+
+def _frame(points: np.ndarray, resolution: float, border: float):
+    lo = points.min(0) - border
+    hi = points.max(0) + border
+    size = np.ceil((hi - lo) / resolution).astype(int) + 1
+    return lo, size
+
+
+def _pix(p: np.ndarray, lo: np.ndarray, size: np.ndarray, resolution: float) -> np.ndarray:
+    q = (p - lo) / resolution
+    return np.column_stack([q[:, 0], size[1] - 1 - q[:, 1]]).round().astype(np.int32)
+
+
+def render_png(lmap: LineMap, path: str | Path, trajectory: np.ndarray | None = None,
+               reference: np.ndarray | None = None, resolution: float = 0.03,
+               border: float = 1.0) -> None:
+    """Map segments in black over white, the trajectory in blue (reference in light grey)."""
+    pts = [lmap.a, lmap.b]
+    for t in (trajectory, reference):
+        if t is not None and len(t):
+            pts.append(np.asarray(t)[:, :2])
+    allp = np.concatenate(pts) if sum(len(p) for p in pts) else np.zeros((1, 2))
+    lo, size = _frame(allp, resolution, border)
+    img = np.full((size[1], size[0], 3), 255, np.uint8)
+    if reference is not None and len(reference):
+        cv2.polylines(img, [_pix(np.asarray(reference)[:, :2], lo, size, resolution)], False,
+                      (200, 200, 200), 1, cv2.LINE_AA)
+    if trajectory is not None and len(trajectory):
+        cv2.polylines(img, [_pix(np.asarray(trajectory)[:, :2], lo, size, resolution)], False,
+                      (220, 120, 0), 1, cv2.LINE_AA)
+    if len(lmap):
+        pa = _pix(lmap.a, lo, size, resolution)
+        pb = _pix(lmap.b, lo, size, resolution)
+        for p, q in zip(pa, pb, strict=True):  # one draw call per segment (segments, not points)
+            cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), (0, 0, 0), 2,
+                     cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        raise OSError(f"{path}: could not write PNG")
+
+
+def export_occupancy(lmap: LineMap, stem: str | Path, resolution: float = 0.05,
+                     border: float = 1.0) -> tuple[Path, Path]:
+    """Occupancy image ``stem.pgm`` (walls 0 = occupied, 254 = free/unknown as 205 is
+    unknown) and ``stem.yaml`` with the map_server fields; returns both paths."""
+    stem = Path(stem)
+    allp = np.concatenate([lmap.a, lmap.b]) if len(lmap) else np.zeros((1, 2))
+    lo, size = _frame(allp, resolution, border)
+    img = np.full((size[1], size[0]), 205, np.uint8)
+    if len(lmap):
+        pa = _pix(lmap.a, lo, size, resolution)
+        pb = _pix(lmap.b, lo, size, resolution)
+        for p, q in zip(pa, pb, strict=True):
+            cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), 0, 1)
+    pgm = stem.with_suffix(".pgm")
+    yml = stem.with_suffix(".yaml")
+    if not cv2.imwrite(str(pgm), img):
+        raise OSError(f"{pgm}: could not write PGM")
+    yml.write_text(
+        f"image: {pgm.name}\nmode: trinary\nresolution: {resolution}\n"
+        f"origin: [{lo[0]:.4f}, {lo[1]:.4f}, 0.0]\nnegate: 0\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    return pgm, yml

@@ -1,0 +1,200 @@
+"""The 2D line mapper: scan -> segments -> laser chain to global -> match against the whole
+global map -> pose correction (eqs. 10-11) -> merge, with loop closure on a pose graph.
+
+Plain data and pure steps; the caller (CLI, daemon) owns time, threads and I/O.  Poses of the
+graph's nodes are laser poses (the laser chain M_GB M_BL with the mount ``M_BL``); the base
+pose follows through the inverse mount.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .cga_segments import laser_motor, segments_to_global
+from .correction import Correction, CorrectionParams, correct_pose
+from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
+from .posegraph import PoseGraph, relative, wrap
+from .segments import SegmentParams, Segments, extract_segments
+
+
+def compose(p, inc) -> np.ndarray:
+    """Pose p followed by the increment inc (given in p's frame)."""
+    p, inc = np.asarray(p, float), np.asarray(inc, float)
+    c, s = np.cos(p[2]), np.sin(p[2])
+    return np.array([p[0] + c * inc[0] - s * inc[1], p[1] + s * inc[0] + c * inc[1],
+                     float(wrap(p[2] + inc[2]))])
+
+
+def invert(p) -> np.ndarray:
+    return relative(np.asarray(p, float), np.zeros(3))
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    enabled: bool = True
+    min_separation: int = 25      # scans between a node and the visits it may close with
+    radius: float = 4.0           # look for earlier visits within this distance (m)
+    candidates: int = 2           # earlier visits tried per scan
+    window: int = 3               # an earlier visit's submap: its scan +- window scans
+    min_fraction: float = 0.5     # of the scan's segment length matched
+    max_std: float = 0.08         # (m) the match must fix the translation in every direction
+    optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
+    optimize_rot: float = 0.01    # (rad)
+    cooldown: int = 3             # scans between optimisations
+
+
+@dataclass
+class MapperParams:
+    segments: SegmentParams = field(default_factory=SegmentParams)
+    correction: CorrectionParams = field(default_factory=CorrectionParams)
+    map: MapParams = field(default_factory=MapParams)
+    loop: LoopParams = field(default_factory=LoopParams)
+    mount: tuple[float, float, float] | None = None  # laser pose in the base frame (M_BL)
+    seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)
+    odo_sigma: tuple[float, float, float, float] = (0.05, 0.10, 0.02, 0.03)  # unmatched step
+
+
+@dataclass
+class StepResult:
+    pose: np.ndarray          # corrected laser pose (x, y, theta)
+    segments: int
+    correction: Correction | None
+    loops: int = 0
+    optimized: bool = False
+
+
+class Mapper:
+    """State of one mapping run: the line map, the pose graph, the last odometry pose."""
+
+    def __init__(self, params: MapperParams | None = None, initial_pose=(0.0, 0.0, 0.0)):
+        self.params = params or MapperParams()
+        self.map = LineMap()
+        self.graph = PoseGraph()
+        self.initial = np.asarray(initial_pose, dtype=float)
+        self.last_odom: np.ndarray | None = None
+        self.last_opt = -10 ** 9
+        self.pending = False
+        self.loops = 0
+        self.optimizations = 0
+
+    @property
+    def count(self) -> int:
+        return len(self.graph.poses)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return np.array(self.graph.poses) if self.graph.poses else np.zeros((0, 3))
+
+    def _laser(self, base_pose) -> np.ndarray:
+        m = self.params.mount
+        return np.asarray(base_pose, float) if m is None else compose(base_pose, m)
+
+    def base_pose(self, laser_pose) -> np.ndarray:
+        m = self.params.mount
+        return np.asarray(laser_pose, float) if m is None else compose(laser_pose, invert(m))
+
+    def step(self, ranges, angle_min: float, angle_increment: float, odom) -> StepResult:
+        """One scan with its odometry (base) pose: predict, correct against the global map,
+        add to the pose graph, close loops, merge into the map."""
+        P = self.params
+        odom_l = self._laser(odom)
+        seg = extract_segments(ranges, angle_min, angle_increment, P.segments)
+        corr = None
+        if self.last_odom is None:
+            pose = self._laser(self.initial)
+            i = self.graph.add_node(pose)
+            self.last_odom = odom_l
+            self._merge(seg, i)
+            return StepResult(pose, len(seg), None)
+        inc = relative(self.last_odom, odom_l)
+        self.last_odom = odom_l
+        prev = self.graph.poses[-1]
+        pred = compose(prev, inc)
+        step = float(np.hypot(inc[0], inc[1]) + 0.3 * abs(inc[2]))
+        pose = pred
+        if len(self.map) and len(seg):
+            corr = correct_pose(seg, self.map.a, self.map.b, pred, step, P.correction)
+            pose = corr.pose
+        i = self.graph.add_node(pose)
+        if corr is not None and corr.matched_fraction > 0.3:
+            st, sr = P.seq_sigma
+        else:
+            a, b, c, d = P.odo_sigma
+            st, sr = a + b * step, c + d * step
+        self.graph.add_edge(i - 1, i, relative(prev, pose), np.diag([st ** -2, st ** -2,
+                                                                       sr ** -2]))
+        loops, optimized = 0, False
+        if P.loop.enabled:
+            loops = self._close_loops(i, seg)
+            if self.pending and i - self.last_opt >= P.loop.cooldown:
+                self.optimize()
+                optimized = True
+        self._merge(seg, i)
+        return StepResult(self.graph.poses[i].copy(), len(seg), corr, loops, optimized)
+
+    def _merge(self, seg: Segments, node: int) -> None:
+        P = self.params
+        M = laser_motor(self.graph.poses[node])
+        seg_g = segments_to_global(seg, M)
+        integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node)
+        age_out(self.map, node, P.map)
+        if node % P.map.dedupe_every == 0:
+            dedupe(self.map, P.map, since=node - P.map.dedupe_every)
+
+    def _close_loops(self, i: int, seg: Segments) -> int:
+        LP = self.params.loop
+        if i <= LP.min_separation or not len(seg) or not len(self.map.c_node):
+            return 0
+        X = self.poses
+        old = X[: i - LP.min_separation + 1]
+        dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
+        order = np.argsort(dist)
+        tried, added = [], 0
+        for j in order[: 4 * LP.candidates]:
+            if dist[j] > LP.radius or len(tried) >= LP.candidates:
+                break
+            if any(abs(int(j) - t) <= LP.window for t in tried):
+                continue
+            tried.append(int(j))
+            sel = np.abs(self.map.c_node - j) <= LP.window
+            sel &= self.map.c_node < i - LP.min_separation + LP.window + 1
+            if sel.sum() < 2:
+                continue
+            nodes = self.map.c_node[sel]
+            rel = relative(X[j], X[nodes])  # submap scans in j's frame
+            c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
+            R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+            sa = np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2]
+            sb = np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2]
+            guess = relative(X[j], X[i])
+            corr = correct_pose(seg, sa, sb, guess, 4.0, self.params.correction)
+            std = np.sqrt(np.linalg.eigvalsh(corr.cov[:2, :2]).max())
+            if corr.matched_fraction < LP.min_fraction or std > LP.max_std:
+                continue
+            if np.count_nonzero(corr.matches >= 0) < 2:
+                continue
+            cov = corr.cov + np.diag([0.02 ** 2, 0.02 ** 2, 0.005 ** 2])
+            self.graph.add_edge(int(j), i, corr.pose, np.linalg.inv(cov), loop=True)
+            self.loops += 1
+            added += 1
+            e = relative(guess, corr.pose)
+            if np.hypot(e[0], e[1]) > LP.optimize_trans or abs(e[2]) > LP.optimize_rot:
+                self.pending = True
+        return added
+
+    def optimize(self) -> None:
+        """Solve the pose graph and move the map with it."""
+        self.graph.optimize()
+        refresh(self.map, self.poses)
+        dedupe(self.map, self.params.map)
+        self.pending = False
+        self.last_opt = self.count - 1
+        self.optimizations += 1
+
+    def finish(self) -> np.ndarray:
+        """Final optimisation (if loops were closed); returns the laser poses (n, 3)."""
+        if self.params.loop.enabled and self.loops:
+            self.optimize()
+        return self.poses

@@ -1,0 +1,99 @@
+"""Pose correction (eqs. 10-11) and the pose graph: known motions are recovered."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from cgamap.mapping.correction import correct_pose
+from cgamap.mapping.evaluation import align_rigid_2d, apply_pose, ate, rpe
+from cgamap.mapping.posegraph import PoseGraph, relative, wrap
+from cgamap.mapping.segments import segments_from_scan
+from cgamap.mapping.slam2d import compose
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from synth2d import L_CORNER, ROOM, scan, world
+
+TRUE = np.array([0.4, -0.3, 0.25])
+
+
+def _room_map():
+    w = world(ROOM)
+    seg = segments_from_scan(scan(w, (0.0, 0.0, 0.0), n=720, fov=2 * np.pi))
+    return w, seg
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(-0.2, 0.2), st.floats(-0.2, 0.2), st.floats(-0.08, 0.08))
+def test_known_motion_recovered_from_segments(dx, dy, dth):
+    """Property: the map is a scan's segments moved by a known pose; starting from a wrong
+    guess, the correction finds that pose."""
+    _, seg = _room_map()
+    glob = seg.transformed(*TRUE)
+    guess = TRUE + [dx, dy, dth]
+    c = correct_pose(seg, glob.a, glob.b, guess, step=10.0)  # a weak odometry prior
+    assert np.allclose(c.pose[:2], TRUE[:2], atol=2e-3)
+    assert abs(wrap(c.pose[2] - TRUE[2])) < 1e-3
+    assert c.matched_fraction > 0.9 and c.rms < 1e-3
+
+
+def test_scan_from_another_pose_is_located():
+    w, seg0 = _room_map()
+    pose = np.array([0.6, 0.3, 0.4])
+    seg1 = segments_from_scan(scan(w, pose, n=720, fov=2 * np.pi, sigma=0.005))
+    c = correct_pose(seg1, seg0.a, seg0.b, pose + [0.1, -0.12, -0.05], step=10.0)
+    assert np.hypot(*(c.pose[:2] - pose[:2])) < 0.02
+    assert abs(wrap(c.pose[2] - pose[2])) < np.deg2rad(0.5)
+    assert np.all(np.linalg.eigvalsh(c.cov) > 0)
+
+
+def test_corridor_direction_is_held_by_the_prior():
+    # only one wall direction: translation along it must stay at the prediction
+    w = world([(-10, -1, 10, -1), (-10, 1, 10, 1)])
+    seg = segments_from_scan(scan(w, (0.0, 0.0, 0.0)))
+    pred = np.array([0.3, 0.05, 0.0])
+    c = correct_pose(seg, seg.a, seg.b, pred, step=1.0)
+    assert c.pose[0] == pytest.approx(0.3, abs=1e-6)
+    assert c.pose[1] == pytest.approx(0.0, abs=0.01)  # the walls win over the prior
+    assert c.cov[0, 0] > 5 * c.cov[1, 1]  # the covariance says which way is unknown
+
+
+def test_no_map_keeps_prediction():
+    seg = segments_from_scan(scan(world(L_CORNER), (0.0, 0.0, 0.0)))
+    c = correct_pose(seg, np.zeros((0, 2)), np.zeros((0, 2)), TRUE)
+    assert np.allclose(c.pose, TRUE) and c.matched_fraction == 0.0
+
+
+def test_pose_graph_closes_a_square_loop():
+    rng = np.random.default_rng(1)
+    true = [np.zeros(3)]
+    for k in range(39):
+        true.append(compose(true[-1], [1.0, 0.0, np.pi / 2 if k % 10 == 9 else 0.0]))
+    true = np.array(true)
+    g = PoseGraph()
+    g.add_node(true[0])
+    est = true[0].copy()
+    info = np.diag([1 / 0.02 ** 2, 1 / 0.02 ** 2, 1 / 0.01 ** 2])
+    for k in range(1, 40):
+        z = relative(true[k - 1], true[k]) + rng.normal(0, [0.02, 0.02, 0.01])
+        est = compose(est, z)
+        g.add_node(est)
+        g.add_edge(k - 1, k, z, info)
+    before = ate(np.array(g.poses), true)["ate_trans_m"]
+    g.add_edge(0, 39, relative(true[0], true[39]), info * 4, loop=True)
+    g.optimize()
+    after = ate(np.array(g.poses), true)["ate_trans_m"]
+    assert after < 0.5 * before
+    assert np.allclose(g.poses[0], true[0])  # the first node is held
+
+
+def test_ate_is_zero_after_a_rigid_motion_and_rpe_sees_steps():
+    t = np.linspace(0, 10, 60)
+    ref = np.column_stack([t, np.sin(t), np.cos(t)])
+    moved = apply_pose((1.0, -2.0, 0.7), ref)
+    T = align_rigid_2d(moved, ref)
+    assert np.allclose(apply_pose(T, moved), ref, atol=1e-9)
+    assert ate(moved, ref)["ate_trans_m"] < 1e-9
+    assert rpe(moved, ref)["rpe_trans_m"] < 1e-9
+    bumped = ref.copy()
+    bumped[30:, 1] += 0.1
+    assert rpe(bumped, ref)["rpe_trans_m"] > 0.01

@@ -1,0 +1,107 @@
+"""End to end: maps built from simulated scans (truth known) and from the real Intel log;
+the ``cgamap map build`` / ``cgamap relocalize`` commands."""
+
+from __future__ import annotations
+
+import gzip
+import json
+
+import numpy as np
+import pytest
+from cgamap.daemon.cli import main
+from cgamap.drivers.carmen import read_scans
+from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.odometry import add_odometry_noise
+from cgamap.mapping.offline import build_map
+from conftest import require_data
+from synth2d import scan
+
+INTEL = "laser/intel-corrected.log.gz"
+
+
+@pytest.mark.parametrize("name", ["loop", "corridor"])
+def test_simulated_world_pose_error(name):
+    w = get_world(name)
+    laps = 2
+    step = 0.7  # metres between scans, as sparse as the real logs
+    t = np.arange(0, laps * w.path_length / w.speed, step / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=5)
+    res = build_map(scans, odo)
+    odo_ate = res.report["odometry"]["ate_trans_m"]
+    assert res.report["ate_trans_m"] < 0.1, res.report
+    assert res.report["ate_rot_deg"] < 1.5
+    assert res.report["ate_trans_m"] < 0.2 * odo_ate
+    assert 4 <= res.report["segments"] <= 60  # a clean map: no pile of duplicates
+
+
+def test_intel_high_noise():
+    path = require_data(INTEL)
+    scans = read_scans(path)
+    odo = add_odometry_noise(np.array([s.pose_odom for s in scans]), "high", seed=0)
+    res = build_map(scans, odo)
+    r = res.report
+    assert r["scans_processed"] == 910
+    # loose but meaningful: far better than dead reckoning, locally and globally
+    assert r["ate_trans_m"] < 0.3 * r["odometry"]["ate_trans_m"], r
+    assert r["rpe_trans_m"] < r["odometry"]["rpe_trans_m"], r
+    assert r["rpe_rot_deg"] < r["odometry"]["rpe_rot_deg"], r
+
+
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory):
+    path = require_data(INTEL)
+    out = tmp_path_factory.mktemp("log") / "intel-short.log.gz"
+    kept = 0
+    with gzip.open(path, "rt") as src, gzip.open(out, "wt") as dst:
+        for line in src:
+            dst.write(line)
+            kept += line.startswith("FLASER")
+            if kept >= 120:
+                break
+    return out
+
+
+def test_cli_build_and_relocalize(short_log, tmp_path, capsys):
+    out = tmp_path / "m"
+    rc = main(["map", "build", "--log", str(short_log), "--out", str(out),
+               "--odom-noise", "low", "--seed", "3", "--quiet"])
+    assert rc == 0
+    for f in ("map.json", "map.png", "trajectory.csv", "report.json", "map.pgm", "map.yaml"):
+        assert (out / f).is_file(), f
+    rep = json.loads((out / "report.json").read_text())
+    for k in ("scans_processed", "segments", "ms_per_scan_median", "ms_per_scan_p95",
+              "ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg"):
+        assert k in rep
+    assert rep["scans_processed"] == 120
+    lines = (out / "trajectory.csv").read_text().splitlines()
+    assert lines[0] == "t,x,y,theta" and len(lines) == 121
+    assert float(lines[1].split(",")[0]) == pytest.approx(32.9068)
+    capsys.readouterr()
+    rc = main(["relocalize", "--map", str(out / "map.json"), "--log", str(short_log),
+               "--trials", "20", "--seed", "1", "--json"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    for k in ("trials", "successes", "success_rate", "median_ms", "p95_ms"):
+        assert k in res
+    assert res["trials"] == 20 and res["success_rate"] >= 0.2
+
+
+def test_cli_usage_errors(tmp_path, capsys):
+    assert main(["map", "build", "--log", str(tmp_path / "nope.log"), "--out",
+                 str(tmp_path)]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["relocalize", "--trials", "3"]) == 2
+    assert "--map and --log" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "cgamap.linemap", "version": 1, "segments": [{"a": [0]}]}')
+    log = tmp_path / "a.log"
+    log.write_text("ODOM 0 0 0 0 0 0 1 h 1\n")
+    assert main(["relocalize", "--map", str(bad), "--log", str(log)]) == 2
+    err = capsys.readouterr().err
+    assert "segments[0].a" in err and "Traceback" not in err
+    broken = tmp_path / "broken.log"
+    broken.write_text("FLASER 180 1 2 3\n")
+    assert main(["map", "build", "--log", str(broken), "--out", str(tmp_path / "o")]) == 2
+    assert "broken.log:1" in capsys.readouterr().err

@@ -1,0 +1,142 @@
+"""The global line map: merge, extend, count, age out, dedupe, follow re-optimised poses;
+map JSON round trip and rejection of malformed files."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from cgamap.mapping.linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
+from cgamap.mapping.mapio import MapFormatError, load_map, map_to_json, save_map
+from cgamap.mapping.segments import Segments, segments_from_scan
+from synth2d import ROOM, scan, world
+
+
+def _seg(a, b, n=20) -> Segments:
+    a, b = np.atleast_2d(np.asarray(a, float)), np.atleast_2d(np.asarray(b, float))
+    k = len(a)
+    # moments of n points spread evenly between a and b
+    t = np.linspace(0, 1, n)
+    pts = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]
+    c = pts.mean(1)
+    d = pts - c[:, None, :]
+    S = np.einsum("kni,knj->kij", d, d)
+    return Segments(a, b, np.full(k, n), np.zeros(k), c, S, np.zeros((k, 2, 2)))
+
+
+def test_same_wall_twice_is_one_segment_with_two_observations():
+    m = LineMap()
+    integrate(m, _seg([0, 0], [4, 0]), 0)
+    integrate(m, _seg([0.1, 0.01], [4.1, 0.01]), 1)
+    assert len(m) == 1 and m.n_obs[0] == 2
+    assert m.a[0][0] == pytest.approx(0.0, abs=1e-6) and m.b[0][0] == pytest.approx(4.1, abs=1e-6)
+    assert abs(m.a[0][1] - 0.005) < 1e-3  # refitted between the two observations
+
+
+def test_pieces_extend_and_bridge():
+    m = LineMap()
+    integrate(m, _seg([[0, 0], [3, 0]], [[2, 0], [5, 0]]), 0)  # a gap of 1 m: two pieces
+    assert len(m) == 2
+    integrate(m, _seg([1.5, 0.0], [3.5, 0.0]), 1)  # an observation across the gap joins them
+    assert len(m) == 1
+    assert m.length[0] == pytest.approx(5.0, abs=1e-6) and m.n_obs[0] == 3
+
+
+def test_perpendicular_and_parallel_walls_stay_apart():
+    m = LineMap()
+    integrate(m, _seg([[0, 0], [0, 0.5]], [[4, 0], [4, 0.5]]), 0)   # two walls 0.5 m apart
+    integrate(m, _seg([[2, -2]], [[2, -0.5]]), 1)                    # a perpendicular one
+    assert len(m) == 3
+
+
+def test_not_a_line_is_not_fused():
+    m = LineMap()
+    integrate(m, _seg([0, 0], [4, 0]), 0)
+    # within the gates (4 deg, 0.1 m) but the joint fit would not be a line
+    integrate(m, _seg([0, 0.09], [4, 0.37]), 1, MapParams(max_residual=0.02))
+    assert len(m) == 2
+
+
+def test_age_out_and_dedupe():
+    m = LineMap()
+    integrate(m, _seg([0, 0], [4, 0]), 0)
+    integrate(m, _seg([0, 3], [0.4, 3]), 0)          # short, seen once
+    integrate(m, _seg([0, 0], [4, 0]), 1)
+    for k in range(2, 20):
+        integrate(m, _seg([0, 0], [4, 0]), k)
+        age_out(m, k)
+    assert len(m) == 1 and m.n_obs[0] == 20
+    # two coinciding segments (as after a loop closure) are fused by dedupe
+    m2 = LineMap()
+    m2.append(_seg([[0, 0], [1, 0.01]], [[4, 0], [5, 0.01]]), 0)
+    assert dedupe(m2) == 1 and len(m2) == 1
+
+
+def test_refresh_follows_new_poses():
+    m = LineMap()
+    w = world(ROOM)
+    poses = np.array([[0.0, 0.0, 0.0], [0.5, 0.2, 0.3]])
+    for i, p in enumerate(poses):
+        seg = segments_from_scan(scan(w, p, n=720, fov=2 * np.pi))
+        integrate(m, seg.transformed(*p), i, seg_l=seg, node=i)
+    before = m.a.copy()
+    assert len(m) == 4 and np.all(m.n_obs == 2)
+    refresh(m, poses)                       # same poses: the same map
+    assert np.allclose(np.sort(m.a, 0), np.sort(before, 0), atol=1e-6)
+    refresh(m, poses + [1.0, 0.0, 0.0])     # everything moved by 1 m
+    assert np.allclose(np.sort(m.a[:, 0]), np.sort(before[:, 0]) + 1.0, atol=1e-6)
+
+
+def _room_map() -> LineMap:
+    m = LineMap()
+    seg = segments_from_scan(scan(world(ROOM), (0.0, 0.0, 0.0), n=720, fov=2 * np.pi))
+    integrate(m, seg, 0)
+    return m
+
+
+def test_json_round_trip(tmp_path):
+    m = _room_map()
+    p = tmp_path / "map.json"
+    save_map(m, p, {"note": "room"})
+    back = load_map(p)
+    assert np.allclose(back.a, m.a, atol=1e-5) and np.allclose(back.b, m.b, atol=1e-5)
+    assert np.array_equal(back.n_obs, m.n_obs)
+    assert back.metadata["note"] == "room"
+    doc = json.loads(p.read_text())
+    assert doc["version"] == 1 and "point_pair" in doc["segments"][0]["cga"]
+    assert set(doc["segments"][0]["cga"]["sphere"]) <= {"e1", "e2", "e3", "e+", "e-"}
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda d: d.update(format="other"), "format"),
+    (lambda d: d.update(version=99), "unsupported version"),
+    (lambda d: d["segments"][1].update(a=[1.0]), r"segments\[1\]\.a"),
+    (lambda d: d["segments"][0].update(n_obs=0), r"segments\[0\]\.n_obs"),
+    (lambda d: d["segments"][2].update(b=d["segments"][2]["a"]), "coincide"),
+    (lambda d: d["segments"][0]["cga"]["point_pair"].update({"e12": 123.0}), "does not match"),
+    (lambda d: d["segments"][0]["cga"]["point_pair"].update({"e9": 1.0}), "unknown blade"),
+    (lambda d: d.update(segments={}), "segments must be a list"),
+])
+def test_malformed_files_are_rejected(tmp_path, mutate, message):
+    doc = map_to_json(_room_map())
+    mutate(doc)
+    p = tmp_path / "bad.json"
+    p.write_text(json.dumps(doc))
+    with pytest.raises(MapFormatError, match=message) as exc:
+        load_map(p)
+    assert "bad.json" in str(exc.value)
+
+
+def test_not_json_and_nan(tmp_path):
+    p = tmp_path / "x.json"
+    p.write_text("{not json")
+    with pytest.raises(MapFormatError, match="not JSON"):
+        load_map(p)
+    doc = map_to_json(_room_map())
+    text = json.dumps(doc).replace(str(doc["segments"][0]["a"][0]), "NaN", 1)
+    p.write_text(text)
+    with pytest.raises(MapFormatError, match="finite"):
+        load_map(p)
+    with pytest.raises(MapFormatError, match="cannot read"):
+        load_map(tmp_path / "missing.json")

@@ -1,0 +1,74 @@
+"""Relocalisation in the Hough domain: known poses are found from one scan; symmetric places
+give several ranked hypotheses; an unrelated scan is "not found"."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.linemap import LineMap, integrate
+from cgamap.mapping.posegraph import wrap
+from cgamap.mapping.relocalize import DistanceField, relocalize
+from cgamap.mapping.segments import segments_from_scan
+from synth2d import scan, world
+
+
+def _map_of(w, poses) -> LineMap:
+    m = LineMap()
+    for i, p in enumerate(poses):
+        seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
+        integrate(m, seg.transformed(*p), i)
+    return m
+
+
+@pytest.fixture(scope="module")
+def loop_world():
+    w = get_world("loop")
+    t = np.linspace(0, w.path_length / w.speed, 60, endpoint=False)
+    poses = np.column_stack(w.trajectory(t))
+    return w, poses, _map_of(w, poses)
+
+
+def test_finds_known_poses(loop_world):
+    w, poses, m = loop_world
+    field = DistanceField(m)
+    rng = np.random.default_rng(4)
+    ok = 0
+    picks = rng.choice(len(poses), 12, replace=False)
+    for i in picks:
+        p = poses[i] + [0.05, -0.04, 0.02]  # between the mapped poses
+        seg = segments_from_scan(scan(w, p, n=180, sigma=0.01, seed=int(i)))
+        r = relocalize(m, seg, field)
+        assert r.found
+        # the loop world is symmetric (a square of corridors): the true pose must be among
+        # the best-scoring hypotheses, not necessarily first
+        best = r.hypotheses[0].score
+        assert any(np.hypot(*(h.pose[:2] - p[:2])) < 0.1
+                   and abs(wrap(h.pose[2] - p[2])) < np.deg2rad(2)
+                   and h.score >= best - 0.05 for h in r.hypotheses)
+        ok += bool(np.hypot(*(r.pose[:2] - p[:2])) < 0.1)
+    assert ok >= 4  # and it is often first
+
+
+def test_symmetric_room_gives_ranked_hypotheses():
+    w = world([(-4, -2, 4, -2), (4, -2, 4, 2), (4, 2, -4, 2), (-4, 2, -4, -2)])  # a box
+    m = _map_of(w, [(0.0, 0.0, 0.0)])
+    p = np.array([1.0, 0.5, 0.3])
+    r = relocalize(m, segments_from_scan(scan(w, p, n=720, fov=2 * np.pi)))
+    assert r.found and len(r.hypotheses) >= 2
+    scores = [h.score for h in r.hypotheses]
+    assert scores == sorted(scores, reverse=True)
+    # the point-symmetric pose explains the scan as well as the true one
+    mirrored = np.array([-1.0, -0.5, wrap(0.3 + np.pi)])
+    near = [h for h in r.hypotheses if h.score > 0.95]
+    assert any(np.hypot(*(h.pose[:2] - p[:2])) < 0.05 for h in near)
+    assert any(np.hypot(*(h.pose[:2] - mirrored[:2])) < 0.05 for h in near)
+
+
+def test_unrelated_scan_is_not_found(loop_world):
+    _, _, m = loop_world
+    other = world([(-1, -1, 1, -1), (1, -1, 1, 1.5), (1, 1.5, -1, 1), (-1, 1, -1, -1),
+                   (-0.3, 0.2, 0.4, -0.5)])
+    r = relocalize(m, segments_from_scan(scan(other, (0.0, 0.0, 0.4), n=360,
+                                              fov=2 * np.pi)))
+    assert not r.found and r.pose is None
