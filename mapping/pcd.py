@@ -127,6 +127,23 @@ def _pcd_fields(header: dict, name: str) -> tuple[list[str], np.dtype, int, int]
     return fields, np.dtype(uniq), width, height
 
 
+def _clear_errors(reader):
+    """Turn any parsing slip on a malformed file into one CloudFormatError naming the file."""
+
+    def wrapped(path, *args, **kw):
+        try:
+            return reader(path, *args, **kw)
+        except CloudFormatError:
+            raise
+        except (ValueError, IndexError, KeyError, TypeError, OverflowError, struct.error) as exc:
+            raise CloudFormatError(f"{path}: malformed {Path(path).suffix.lstrip('.')} file "
+                                   f"({type(exc).__name__}: {exc})") from None
+
+    wrapped.__name__, wrapped.__doc__ = reader.__name__, reader.__doc__
+    return wrapped
+
+
+@_clear_errors
 def read_pcd(path: str | Path, keep_organised: bool = True) -> np.ndarray:
     """xyz of a PCD file: (H, W, 3) for organised clouds (NaN kept), else (n, 3) float64."""
     path = Path(path)
@@ -157,13 +174,17 @@ def read_pcd(path: str | Path, keep_organised: bool = True) -> np.ndarray:
             raise CloudFormatError(f"{name}: binary PCD body is {len(raw) - body} bytes, "
                                    f"needs {need}")
         rec = np.frombuffer(raw, dtype=dtype, count=n, offset=body)
-        xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=-1).astype(float)
+        with np.errstate(invalid="ignore"):
+            xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=-1).astype(float)
     elif kind == "binary_compressed":
         if len(raw) - body < 8:
             raise CloudFormatError(f"{name}: binary_compressed PCD has no size words")
         csize, usize = struct.unpack_from("<II", raw, body)
         if usize != n * dtype.itemsize:
             raise CloudFormatError(f"{name}: uncompressed size {usize} != {n * dtype.itemsize}")
+        if usize > 90 * csize + 64:  # LZF expands at most ~88x (3 bytes per 264-byte copy)
+            raise CloudFormatError(f"{name}: uncompressed size {usize} impossible for "
+                                   f"{csize} compressed bytes")
         comp = raw[body + 8: body + 8 + csize]
         if len(comp) != csize:
             raise CloudFormatError(f"{name}: compressed body truncated ({len(comp)} of {csize})")
@@ -186,6 +207,7 @@ def read_pcd(path: str | Path, keep_organised: bool = True) -> np.ndarray:
     return xyz
 
 
+@_clear_errors
 def read_ply(path: str | Path) -> np.ndarray:
     """xyz (n, 3) of the vertex element of a PLY file (ascii or binary_little_endian)."""
     path = Path(path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import struct
 
 import numpy as np
@@ -330,3 +331,69 @@ def test_any_orientation_is_recovered(theta, phi, rho, method):
     assert abs(sign * p.rho - rho) < 0.003
     t, ph, r = p.hough
     assert 0 <= t <= np.pi and -np.pi < ph <= np.pi and r >= 0
+
+
+FUZZ_EXAMPLES = int(os.environ.get("CGAMAP_FUZZ_EXAMPLES", "5000"))
+
+
+def _valid_files(tmp_dir):
+    pts = np.arange(36, dtype=np.float32).reshape(12, 3) / 7
+    rec = np.zeros(12, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    rec["x"], rec["y"], rec["z"] = pts.T
+    columns = b"".join(np.ascontiguousarray(rec[k]).tobytes() for k in ("x", "y", "z", "rgb"))
+    comp = lzf_literal_only(columns)
+    return {
+        "b.pcd": _pcd_header("binary", 4, 3) + rec.tobytes(),
+        "c.pcd": _pcd_header("binary_compressed", 4, 3)
+        + struct.pack("<II", len(comp), len(columns)) + comp,
+        "a.pcd": _pcd_header("ascii", 4, 3).replace(b"TYPE F F F U", b"TYPE F F F F")
+        + b"\n".join(b"%g %g %g 0" % tuple(p) for p in pts) + b"\n",
+        "a.ply": b"ply\nformat ascii 1.0\nelement vertex 12\nproperty float x\n"
+                 b"property float y\nproperty float z\nend_header\n"
+                 + b"\n".join(b"%g %g %g" % tuple(p) for p in pts) + b"\n",
+    }
+
+
+@pytest.mark.parametrize("name", ["b.pcd", "c.pcd", "a.pcd", "a.ply"])
+def test_fuzzed_cloud_files_fail_only_with_a_clear_error(tmp_path, name):
+    """Random byte flips, truncations and insertions: the reader returns a cloud or raises
+    CloudFormatError naming the file, never another exception."""
+    _fuzz_reader(tmp_path, name, 60)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["b.pcd", "c.pcd", "a.pcd", "a.ply"])
+def test_fuzz_cloud_readers_long(tmp_path, name):
+    _fuzz_reader(tmp_path, name, FUZZ_EXAMPLES // 4)
+
+
+def _fuzz_reader(tmp_path, name: str, examples: int) -> None:
+    good = _valid_files(tmp_path)[name]
+    (tmp_path / name).write_bytes(good)
+    assert read_cloud(tmp_path / name).reshape(-1, 3).shape == (12, 3)
+
+    @settings(max_examples=examples, deadline=None, derandomize=True)
+    @given(data=st.data())
+    def mutate(data):
+        raw = bytearray(good)
+        for _ in range(data.draw(st.integers(1, 4))):
+            kind = data.draw(st.sampled_from(["flip", "cut", "insert"]))
+            pos = data.draw(st.integers(0, len(raw) - 1))
+            if kind == "flip":
+                raw[pos] = data.draw(st.integers(0, 255))
+            elif kind == "cut":
+                del raw[pos:pos + data.draw(st.integers(1, 40))]
+            else:
+                raw[pos:pos] = data.draw(st.binary(min_size=1, max_size=8))
+            if not raw:
+                raw = bytearray(b"x")
+        path = tmp_path / name
+        path.write_bytes(bytes(raw))
+        try:
+            cloud = read_cloud(path)
+        except CloudFormatError as exc:
+            assert str(path) in str(exc)
+            return
+        assert cloud.shape[-1] == 3
+
+    mutate()
