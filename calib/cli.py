@@ -115,6 +115,8 @@ def _print_report(doc: dict, result) -> None:
     print(f"translation (m): {_fmt_vec(X[:3, 3])}{t_sig}", file=out)
     print(f"rotation RPY (deg): {_fmt_vec(doc['rpy_eye_deg'], 1, '{:+.3f}')}{r_sig}", file=out)
     print(f"quaternion (w x y z): {_fmt_vec(doc['q_eye'], 1, '{:+.6f}')}", file=out)
+    print("motor M = T R: " + " ".join(f"{v:+.6f}{'' if k == '1' else '*' + k}"
+                                       for k, v in doc["motor"].items()), file=out)
     if unc:
         print(f"noise estimate per axis: {unc['noise_rot_deg']:.3f} deg, "
               f"{unc['noise_trans_mm']:.2f} mm", file=out)

@@ -142,6 +142,18 @@ def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+def mount_motor(X: np.ndarray) -> dict[str, float]:
+    """The mount as a CGA motor M = T R, by its coefficients on 1, e23, e31, e12, e1inf,
+    e2inf, e3inf, e123inf (scalar part >= 0)."""
+    from cgamap.cga import motor_from_matrix
+
+    from .handeye import _COORDS, _MOTOR_BASIS_NAMES
+
+    c = motor_from_matrix(X).v @ _COORDS
+    c = -c if c[0] < 0 else c
+    return {name: float(v) for name, v in zip(_MOTOR_BASIS_NAMES, c, strict=True)}
+
+
 def calibration_document(result, n_pairs: int, source: str | None = None,
                          axes: dict | None = None) -> dict:
     """The calibration file's content for a ``HandEyeResult``."""
@@ -156,6 +168,7 @@ def calibration_document(result, n_pairs: int, source: str | None = None,
         "R_eye": [[float(v) for v in row] for row in R],
         "q_eye": [float(v) for v in quaternion_from_rotation(R)],
         "rpy_eye_deg": [float(v) for v in np.degrees(rpy_from_matrix(R))],
+        "motor": mount_motor(X),
         "pairs": n_pairs,
     }
     if source:

@@ -56,6 +56,12 @@ def test_collect_then_hand_eye_recovers_the_hidden_mount(sim_pairs, tmp_path, ca
     np.testing.assert_allclose(cal["R_eye"], X[:3, :3])
     assert len(cal["q_eye"]) == 4 and len(cal["residuals"]["rot_deg"]) == 20
     assert len(cal["uncertainty"]["rot_deg_1sigma"]) == 3
+    from cgamap.calib.handeye import _BASIS
+    from cgamap.cga import Multivector, motor_to_matrix
+
+    M = Multivector(np.array(list(cal["motor"].values())) @ _BASIS.v)
+    np.testing.assert_allclose(motor_to_matrix(M), X, atol=1e-9)  # the motor is the mount
+    assert "motor M = T R" in out
     assert all(s < 0.5 for s in cal["uncertainty"]["rot_deg_1sigma"])
 
 
