@@ -16,6 +16,15 @@ frame (x forward, counter-clockwise).  Ranges: ``value · scale + offset`` mm; 0
 CoLa A has no checksum (TCP protects the wire): the parser is strict instead (every token
 must parse, channel counts must match, every token must be consumed), so a damaged telegram is
 dropped and counted unless the damage keeps the syntax (one hex digit turned into another).
+
+CoLa B (binary, usually port 2112): ``02 02 02 02``, payload length (uint32 big-endian), payload,
+XOR of the payload bytes.  The payload is ``"<type> <name> "`` and big-endian binary arguments;
+``LMDscandata`` follows the field order above with the widths of SICK's telegram tables
+(uint16 version/device, uint32 serial, 2 × uint8 status, uint16 counters, uint32 times, 2 × 2
+uint8 I/O, uint16 layer angle, uint32 frequencies, uint16 counts, 5-char channel names, float32
+scale/offset, int32 start angle, uint16 step and count).  The optional position and event blocks
+are refused (their binary layout is unverified here); device name and comment are read as a
+length byte and text (unverified).
 """
 
 from __future__ import annotations
@@ -272,7 +281,8 @@ def scan_from_data(data: ScanData, stamp_ns: int) -> LaserScan:
     if dist is None:
         raise ColaError("LMDscandata without DIST1")
     mm = dist.values * dist.scale + dist.offset
-    ranges = np.where(dist.values == 0, np.nan, mm / 1000.0)
+    # raw values below 16 are codes, not ranges: 0 no echo, 1 dazzled, 2-15 reserved
+    ranges = np.where(dist.values < 16, np.nan, mm / 1000.0)
     rssi = data.channel("RSSI1")
     inten = None
     if rssi is not None and len(rssi.values) == len(ranges):
@@ -286,19 +296,162 @@ def scan_from_data(data: ScanData, stamp_ns: int) -> LaserScan:
         intensities=inten, device_stamp=data.scan_counter)
 
 
+# -- CoLa B -----------------------------------------------------------------------------------
+COLA_B_MAGIC = b"\x02\x02\x02\x02"
+
+
+def _xor(data: bytes) -> int:
+    return int(np.bitwise_xor.reduce(np.frombuffer(data, np.uint8))) if data else 0
+
+
+def cola_b(payload: bytes) -> bytes:
+    """Frame a CoLa B payload: magic, length (uint32 BE), payload, XOR checksum."""
+    return COLA_B_MAGIC + len(payload).to_bytes(4, "big") + payload + bytes([_xor(payload)])
+
+
+class ColaBParser:
+    """Incremental CoLa B splitter: payloads with a good XOR; bad ones dropped and counted
+    (``checksum``), bytes outside frames counted (``framing``); sliding resumes one byte on."""
+
+    def __init__(self, errors: ErrorCounters | None = None) -> None:
+        self.errors = errors if errors is not None else ErrorCounters()
+        self.buf = bytearray()
+
+    def reset(self) -> None:
+        self.buf.clear()
+
+    def feed(self, data: bytes) -> list[list[bytes]]:
+        """Payloads split as ``[type, name, binary rest]``."""
+        buf = self.buf
+        buf += data
+        out: list[list[bytes]] = []
+        while buf:
+            i = buf.find(COLA_B_MAGIC)
+            if i < 0:
+                keep = len(buf) - len(buf.rstrip(b"\x02"))
+                if len(buf) > keep:
+                    self.errors.framing += 1
+                del buf[:len(buf) - min(keep, 3)]
+                break
+            if i:
+                self.errors.framing += 1
+                del buf[:i]
+            if len(buf) < 8:
+                break
+            n = int.from_bytes(buf[4:8], "big")
+            if n == 0 or n > MAX_TELEGRAM * 4:
+                self.errors.framing += 1
+                del buf[:1]
+                continue
+            if len(buf) < 9 + n:
+                break
+            payload = bytes(buf[8:8 + n])
+            if _xor(payload) != buf[8 + n]:
+                self.errors.checksum += 1
+                del buf[:1]
+                continue
+            del buf[:9 + n]
+            parts = payload.split(b" ", 2)
+            if len(parts) < 2 or not _printable(parts[0]):
+                self.errors.framing += 1
+                continue
+            out.append(parts)
+        return out
+
+
+class _Reader:
+    def __init__(self, data: bytes) -> None:
+        self.data, self.i = data, 0
+
+    def take(self, fmt: str) -> tuple:
+        size = struct.calcsize(fmt)
+        if self.i + size > len(self.data):
+            raise ColaError("binary LMDscandata ends early")
+        out = struct.unpack_from(fmt, self.data, self.i)
+        self.i += size
+        return out
+
+    def raw(self, n: int) -> bytes:
+        if self.i + n > len(self.data):
+            raise ColaError("binary LMDscandata ends early")
+        self.i += n
+        return self.data[self.i - n:self.i]
+
+
+def parse_scandata_b(data: bytes) -> ScanData:
+    """Parse the binary arguments of ``sRA|sSN LMDscandata`` (after the name and its space);
+    raises ColaError unless the layout fits and every byte is consumed."""
+    r = _Reader(data)
+    (_version, _device, _serial, _s1, _s2, tele, scan, t_start, _t_tx, _i1, _i2, _o1, _o2,
+     _layer, freq, _mfreq, n_enc) = r.take(">HHIBBHHIIBBBBHIIH")
+    if n_enc > 8:
+        raise ColaError(f"implausible encoder count {n_enc}")
+    r.take(">" + "IH" * n_enc)
+
+    def channels(dtype: str) -> list[Channel]:
+        (n,) = r.take(">H")
+        if n > 8:
+            raise ColaError(f"implausible channel count {n}")
+        out = []
+        for _ in range(n):
+            name = r.raw(5)
+            if not (name[:4] in (b"DIST", b"RSSI", b"ANGL", b"REFL") and name[4:].isdigit()):
+                raise ColaError(f"unknown channel {name!r}")
+            scale, offset, start, step, count = r.take(">ffiHH")
+            if not (math.isfinite(scale) and math.isfinite(offset)) or count == 0 or step == 0:
+                raise ColaError(f"implausible channel {name!r}")
+            size = np.dtype(dtype).itemsize
+            vals = np.frombuffer(r.raw(size * count), dtype).astype(np.int64)
+            out.append(Channel(name.decode(), scale, offset, start / 1e4, step / 1e4, vals))
+        return out
+
+    ch16 = channels(">u2")
+    ch8 = channels("u1")
+    (position,) = r.take(">H")
+    if position:
+        raise ColaError("LMDscandata position block not supported")
+    (has_name,) = r.take(">H")
+    if has_name:
+        r.raw(r.take(">B")[0])
+    (has_comment,) = r.take(">H")
+    if has_comment:
+        r.raw(r.take(">B")[0])
+    (has_time,) = r.take(">H")
+    if has_time:
+        r.take(">HBBBBBI")
+    (event,) = r.take(">H")
+    if event:
+        raise ColaError("LMDscandata event block not supported")
+    if r.i != len(data):
+        raise ColaError(f"{len(data) - r.i} unexpected bytes after LMDscandata")
+    return ScanData(tele, scan, t_start, freq / 100.0, ch16, ch8)
+
+
 class ColaDriver(LaserDriver):
-    """SICK TiM5xx / LMS1xx over CoLa A on TCP (``tcp://host:2111``)."""
+    """SICK TiM5xx / LMS1xx over CoLa A or B on TCP (``tcp://host:2111``).
+
+    ``protocol``: "A" (ASCII), "B" (binary) or "auto" (B on port 2112, else A).
+    """
 
     model = "cola"
 
     def __init__(self, device: str | Transport, timeout: float = 0.5, *,
-                 password: str = CLIENT_PASSWORD, ready_timeout: float = 5.0, **kw) -> None:
+                 password: str = CLIENT_PASSWORD, ready_timeout: float = 5.0,
+                 protocol: str = "auto", command_timeout: float = 1.0, **kw) -> None:
         if isinstance(device, str):
             device = _with_default_port(device)
         super().__init__(device, timeout, **kw)
+        protocol = protocol.upper()
+        if protocol == "AUTO":
+            port = urlsplit(self.url.removeprefix("spy+")).port
+            protocol = "B" if port == 2112 else "A"
+        if protocol not in ("A", "B"):
+            raise ValueError(f"CoLa protocol must be 'A', 'B' or 'auto', not {protocol!r}")
+        self.protocol = protocol
+        self.command_timeout = command_timeout
         self.password = password
         self.ready_timeout = ready_timeout
-        self.parser = ColaAParser(self.errors)
+        self.parser = ColaAParser(self.errors) if protocol == "A" else ColaBParser(self.errors)
         self._pending: list[tuple[list[bytes], int]] = []
         self.scan_config: list[bytes] = []
         self.subscribed = False
@@ -314,13 +467,19 @@ class ColaDriver(LaserDriver):
         stamp = time.monotonic_ns()
         return [(t, stamp) for t in self.parser.feed(data)]
 
-    def command(self, text: str, timeout: float = 2.0) -> list[bytes]:
-        """Send ``sXN name args``; return the reply tokens (``sXA name …``).  ``sFA`` (error)
-        raises DeviceError; other telegrams (scans) meanwhile are kept for read_scan."""
+    def command(self, text: str, timeout: float | None = None, binary: bytes | None = None
+                ) -> list[bytes]:
+        """Send ``sXN name args``; return the reply tokens (``sXA name …``; in CoLa B
+        ``[type, name, binary rest]``).  In CoLa B ``text`` is the type and name and ``binary``
+        the arguments.  ``sFA`` (error) raises DeviceError; scans meanwhile are kept."""
         kind, name = text.split(" ", 2)[:2]
         want = {b"sRN": b"sRA", b"sWN": b"sWA", b"sMN": b"sAN", b"sEN": b"sEA"}[kind.encode()]
-        self.transport.write(cola_a(text))
-        deadline = time.monotonic() + timeout
+        if self.protocol == "A":
+            self.transport.write(cola_a(text))
+        else:
+            args = b"" if binary is None else b" " + binary
+            self.transport.write(cola_b(text.encode("ascii") + args))
+        deadline = time.monotonic() + (self.command_timeout if timeout is None else timeout)
         keep: list[tuple[list[bytes], int]] = []
         try:
             while (left := deadline - time.monotonic()) > 0:
@@ -329,7 +488,8 @@ class ColaDriver(LaserDriver):
                         return toks
                     if toks[0] == b"sFA":
                         self.errors.device += 1
-                        code = toks[1].decode() if len(toks) > 1 else "?"
+                        code = (toks[1].decode("ascii", "replace") if self.protocol == "A"
+                                else str(int.from_bytes(b" ".join(toks[1:]), "big")))
                         raise DeviceError(f"CoLa error sFA {code} for {text!r}")
                     if toks[0] == b"sSN":
                         keep.append((toks, stamp))
@@ -343,34 +503,56 @@ class ColaDriver(LaserDriver):
         self.parser.reset()
         self._pending = []
         self.transport.reset_input()
-        r = self.command(f"sMN SetAccessMode 03 {self.password}")
-        if r[-1] != b"1":
+        b = self.protocol == "B"
+        if b:
+            r = self.command("sMN SetAccessMode",
+                             binary=struct.pack(">BI", 3, int(self.password, 16)))
+        else:
+            r = self.command(f"sMN SetAccessMode 03 {self.password}")
+        if not self._true(r):
             raise DeviceError("CoLa login (SetAccessMode 03) refused")
         self.scan_config = self.command("sRN LMPscancfg")[2:]
         self.command("sMN LMCstartmeas")
         deadline = time.monotonic() + self.ready_timeout
         while True:
             st = self.command("sRN STlms")
-            if len(st) > 2 and st[2] == b"7":
+            if len(st) > 2 and (st[2][:2] == b"\x00\x07" if b else st[2] == b"7"):
                 break
             if time.monotonic() > deadline:
                 raise DeviceError(f"device not ready (STlms {st[2:3]!r})")
             time.sleep(0.05)
         self.command("sMN Run")
-        r = self.command("sEN LMDscandata 1")
-        if r[-1] != b"1":
+        r = (self.command("sEN LMDscandata", binary=b"\x01") if b
+             else self.command("sEN LMDscandata 1"))
+        if not self._true(r):
             raise DeviceError("LMDscandata subscription refused")
         self.subscribed = True
+
+    def _true(self, reply: list[bytes]) -> bool:
+        """The result flag of a reply: last token "1" (A) or first argument byte 1 (B)."""
+        if self.protocol == "A":
+            return reply[-1] == b"1"
+        return len(reply) > 2 and reply[2][:1] == b"\x01"
 
     def _stop(self) -> None:
         if self.subscribed:
             self.subscribed = False
-            self.command("sEN LMDscandata 0")
+            if self.protocol == "B":
+                self.command("sEN LMDscandata", binary=b"\x00")
+            else:
+                self.command("sEN LMDscandata 0")
+
+    def _parse(self, toks: list[bytes]) -> ScanData:
+        if self.protocol == "A":
+            return parse_scandata(toks)
+        if len(toks) != 3:
+            raise ColaError("LMDscandata without arguments")
+        return parse_scandata_b(toks[2])
 
     def request_scan(self, timeout: float = 2.0) -> LaserScan:
         """One scan on request (``sRN LMDscandata``)."""
         toks = self.command("sRN LMDscandata", timeout)
-        return scan_from_data(parse_scandata(toks), time.monotonic_ns())
+        return scan_from_data(self._parse(toks), time.monotonic_ns())
 
     def _receive_scan(self, timeout: float) -> LaserScan | None:
         deadline = time.monotonic() + timeout
@@ -380,7 +562,7 @@ class ColaDriver(LaserDriver):
                 if toks[:2] != [b"sSN", b"LMDscandata"]:
                     continue
                 try:
-                    scan = scan_from_data(parse_scandata(toks), stamp)
+                    scan = scan_from_data(self._parse(toks), stamp)
                 except ColaError as exc:
                     self.errors.framing += 1
                     log.debug("%s: dropped scan: %s", self.url, exc)

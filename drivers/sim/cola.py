@@ -44,6 +44,22 @@ def _hex(v: int) -> str:
     return format(v & 0xFFFFFFFF, "X")
 
 
+def _xor(data: bytes) -> int:
+    out = 0
+    for b in data:
+        out ^= b
+    return out
+
+
+def _cola_b(payload: bytes) -> bytes:
+    return b"\x02\x02\x02\x02" + len(payload).to_bytes(4, "big") + payload + bytes([_xor(payload)])
+
+
+# CoLa B argument formats of the replies (keyed by method/variable name; sFA: error code)
+_B_REPLY_ARGS = {"SetAccessMode": ">B", "LMCstartmeas": ">B", "LMCstopmeas": ">B", "Run": ">B",
+                 "LMDscandata": ">B", "LMPscancfg": ">IHIii", "STlms": ">H", "sFA": ">H"}
+
+
 class _Client:
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
@@ -57,7 +73,8 @@ class ColaTwin:
 
     def __init__(self, world: str | World = "room", *, host: str = "127.0.0.1", port: int = 0,
                  seed: int = 0, fault_rate: float = 0.0, time_scale: float = 1.0,
-                 noise: NoiseModel | None = None) -> None:
+                 noise: NoiseModel | None = None, binary: bool = False) -> None:
+        self.binary = binary   # CoLa B instead of CoLa A
         self.world = get_world(world) if isinstance(world, str) else world
         self.rng = np.random.default_rng(seed)
         self.fault_rate = float(fault_rate)
@@ -227,6 +244,9 @@ class ColaTwin:
         if discard:
             return
         c.buf += data
+        if self.binary:
+            self._receive_b(c)
+            return
         while True:
             s = c.buf.find(b"\x02")
             e = c.buf.find(b"\x03", s + 1) if s >= 0 else -1
@@ -238,9 +258,44 @@ class ColaTwin:
             del c.buf[:e + 1]
             self._command(c, text)
 
+    def _receive_b(self, c: _Client) -> None:
+        """CoLa B commands, translated to the CoLa A text the command handler speaks."""
+        while True:
+            i = c.buf.find(b"\x02\x02\x02\x02")
+            if i < 0 or len(c.buf) < i + 8:
+                return
+            n = int.from_bytes(c.buf[i + 4:i + 8], "big")
+            if len(c.buf) < i + 9 + n:
+                return
+            payload = bytes(c.buf[i + 8:i + 8 + n])
+            ok = _xor(payload) == c.buf[i + 8 + n]
+            del c.buf[:i + 9 + n]
+            if not ok:
+                self.stats["bad_checksum"] += 1
+                continue
+            parts = payload.split(b" ", 2)
+            head = b" ".join(parts[:2]).decode("ascii", "replace")
+            args = parts[2] if len(parts) > 2 else b""
+            if head == "sMN SetAccessMode" and len(args) == 5:
+                level, pw = struct.unpack(">BI", args)
+                head += f" {level:02d} {pw:08X}"
+            elif head == "sEN LMDscandata" and len(args) == 1:
+                head += f" {args[0]}"
+            self._command(c, head)
+
     # -- commands ---------------------------------------------------------------------------
     def _reply(self, c: _Client, text: str) -> None:
-        self._send(c, b"\x02" + text.encode("ascii") + b"\x03")
+        if not self.binary:
+            self._send(c, b"\x02" + text.encode("ascii") + b"\x03")
+            return
+        tok = text.split(" ")
+        fmt = _B_REPLY_ARGS.get(tok[0] if tok[0] == "sFA" else tok[1], "")
+        fields = tok[1:] if tok[0] == "sFA" else tok[2:]
+        vals = [int(t, 16) - ((1 << 32) if f == "i" and int(t, 16) >= 1 << 31 else 0)
+                for t, f in zip(fields, fmt.lstrip(">"), strict=False)]
+        head = tok[0] if tok[0] == "sFA" else " ".join(tok[:2])
+        body = struct.pack(fmt, *vals) if fmt else b""
+        self._send(c, _cola_b(head.encode("ascii") + (b" " + body if body else b"")))
 
     def _command(self, c: _Client, text: str) -> None:
         tok = text.split(" ")
@@ -273,14 +328,15 @@ class ColaTwin:
                 self._next_due = time.monotonic()
             self._reply(c, f"sEA LMDscandata {args[0]}")
         elif kind == "sRN" and name == "LMDscandata":
-            self._reply(c, self._scandata("sRA")[0])
+            self._send(c, self._scandata("sRA")[0])
         elif kind == "sRN" and name == "DeviceIdent":
             self._reply(c, "sRA DeviceIdent 10 TiM5xx-SIM 8 V9.99.99")
         else:
             self._reply(c, "sFA 2")   # method/variable unknown
 
     # -- scans ------------------------------------------------------------------------------
-    def _scandata(self, kind: str) -> tuple[str, bytes]:
+    def _scandata(self, kind: str) -> tuple[bytes, bytes]:
+        """One scan telegram (framed, in the twin's protocol) and its DIST1 values as a key."""
         idx = np.arange(COUNT)
         sick_deg = (START_ANGLE + idx * STEP) / 1e4
         angles = np.radians(sick_deg - 90.0)
@@ -292,6 +348,19 @@ class ColaTwin:
         self.telegram_counter += 1
         self.scan_counter += 1
         t_us = int((time.monotonic() - self._t0) * 1e6) & 0xFFFFFFFF
+        self.t_sim += 1.0 / SCAN_HZ
+        if self.binary:
+            ch = b""
+            for name, vals, dtype in ((b"DIST1", dist, ">u2"), (b"RSSI1", rssi, "u1")):
+                ch += (b"\x00\x01" + name + struct.pack(">ffiHH", 1.0, 0.0, START_ANGLE, STEP,
+                                                          COUNT) + vals.astype(dtype).tobytes())
+            head = struct.pack(">HHIBBHHIIBBBBHIIH", 1, 1, 0x1078AAA, 0, 0,
+                               self.telegram_counter & 0xFFFF, self.scan_counter & 0xFFFF,
+                               t_us, (t_us + 150) & 0xFFFFFFFF, 0, 0, 0, 0, 0,
+                               int(SCAN_HZ * 100), 0xA2, 0)
+            tail = struct.pack(">HHB", 0, 1, 7) + b"TiM5SIM" + struct.pack(">HHH", 0, 0, 0)
+            payload = kind.encode() + b" LMDscandata " + head + ch + tail
+            return _cola_b(payload), dist.astype("<u2").tobytes()
         scale = struct.pack(">f", 1.0).hex().upper()
         zero = struct.pack(">f", 0.0).hex().upper()
         head = ["LMDscandata", "1", "1", "1078AAA", "0", "0",
@@ -305,8 +374,7 @@ class ColaTwin:
                 + dist_tok
                 + f" 1 RSSI1 {scale} {zero} {_hex(START_ANGLE)} {_hex(STEP)} {_hex(COUNT)} "
                 + rssi_tok + " 0 1 7 TiM5SIM 0 0 0")
-        self.t_sim += 1.0 / SCAN_HZ
-        return body, dist.astype("<u2").tobytes()
+        return b"\x02" + body.encode("ascii") + b"\x03", dist.astype("<u2").tobytes()
 
     def _stream(self) -> None:
         subs = [c for c in self.clients if c.subscribed]
@@ -315,8 +383,8 @@ class ColaTwin:
         period = 1.0 / SCAN_HZ / self.time_scale
         now = time.monotonic()
         self._next_due = max(self._next_due + period, now - 2 * period)
-        body, key = self._scandata("sSN")
-        data = b"\x02" + body.encode("ascii") + b"\x03"
+        original, key = self._scandata("sSN")
+        data = original
         intact = True
         with self._lock:
             cut = self._truncate > 0
@@ -332,7 +400,7 @@ class ColaTwin:
             if hit.any():
                 arr[hit] = self.rng.integers(0, 256, int(hit.sum()), dtype=np.uint8)
                 data = arr.tobytes()
-                intact = data == b"\x02" + body.encode("ascii") + b"\x03"
+                intact = data == original
                 self.stats["corrupted"] += not intact
         self.sent.append((key, intact))
         self.stats["scans"] += 1
