@@ -265,15 +265,14 @@ def _echo_like(line: bytes, anywhere: bool) -> bool:
     return False
 
 
+_ALPHABET = bytes(range(0x30, 0x70))
+_STATUS_CHARS = b"0123456789ABCDEFGHIJKLMNOPQRSTUVWXYZ"
+
+
 def _in_alphabet(data: bytes) -> bool:
     """Whether every byte is a SCIP data character (0x30..0x6F)."""
     return not data.translate(None, _ALPHABET)
 
-
-_ALPHABET = bytes(range(0x30, 0x70))
-
-
-_STATUS_CHARS = b"0123456789ABCDEFGHIJKLMNOPQRSTUVWXYZ"
 
 
 def _is_status(line: bytes) -> bool:
@@ -289,6 +288,14 @@ class ScipParser:
     Bad input never raises: it is dropped and counted in :attr:`errors`
     (``checksum``: lines failing theirs; ``framing``: misplaced, overlong or missing lines;
     ``dropped``: replies and scans thrown away because of those).
+
+    A scan is delivered only if its echo names a data command, its status fits it (``99`` for
+    M*, ``00`` for G*), its timestamp and every data line pass their checksums, all data
+    characters lie in the 0x30..0x6F alphabet, and the data length is exactly what the echo's
+    step range, cluster count and encoding call for.  Resynchronisation: a reply ends at the
+    empty line; when that line is lost (a corrupted LF, a truncated reply), a valid status line
+    right after an echo-like line starts the next reply, so one damaged reply costs at most
+    itself.
     """
 
     def __init__(self) -> None:
