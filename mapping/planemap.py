@@ -231,6 +231,23 @@ class PlaneMap:
         mp.inliers = mp.inliers + obs.inliers
         mp.observations += obs.observations
 
+    # -- the daemon's interface (drop-in for daemon/loop.py's PlaneMap) ----------------------
+
+    def integrate(self, planes, motor: Multivector | None = None) -> int:
+        """Add a frame's planes; returns how many were added or merged."""
+        return len(self.add_planes(planes, motor))
+
+    def as_list(self) -> list[dict]:
+        """The planes as JSON-able dicts (normal, rho, hough, corners, extent, cga, ...)."""
+        return [{**p.to_dict(), "seen": p.observations} for p in self.planes]
+
+    def state(self) -> dict:
+        return self.to_dict()
+
+    def load_state(self, st: dict) -> None:
+        other = PlaneMap.from_dict(st)
+        self.rule, self.planes, self._next_id = other.rule, other.planes, other._next_id
+
     # -- exports -----------------------------------------------------------------------------
 
     def to_dict(self) -> dict:

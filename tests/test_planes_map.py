@@ -99,6 +99,10 @@ def test_virtual_walls_and_exports(tmp_path):
     doc = json.loads((tmp_path / "m.json").read_text())
     assert [p["kind"] for p in doc["planes"]].count("wall") == 2
     assert len(doc["planes"][0]["cga"]) == 32
+    again = PlaneMap()
+    again.load_state(json.loads(json.dumps(pm.state())))
+    assert [q["seen"] for q in again.as_list()] == [p.observations for p in pm.planes]
+    assert again.integrate(pm.planes[:1]) == 1 and len(again.planes) == len(pm.planes)
     again = PlaneMap.from_dict(doc)
     assert [p.id for p in again.planes] == [p.id for p in pm.planes]
     for a, b in zip(again.planes, pm.planes, strict=True):
