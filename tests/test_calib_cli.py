@@ -249,3 +249,20 @@ def test_hardware_path_plumbing_on_the_twins(tmp_path, capsys):
     assert doc["pairs"] == []
     assert [s["reason"] for s in doc["skipped"]] == ["target not found"] * 3
     assert "K" in doc["intrinsics"]  # taken from the grabber's frames
+
+
+def test_uncertainty_matches_the_spread_on_the_rendered_pipeline():
+    from cgamap.calib.collect import DirectJoints, SimSource, collect
+    from cgamap.calib.handeye import solve
+
+    err, pred = [], []
+    for seed in range(8):
+        rig = default_rig(seed)
+        pairs = collect(SimSource(rig, seed, DirectJoints()), rig.board,
+                        pose_set(20, math.radians(12), math.radians(8)), rig.axis_point,
+                        1.0, 100.0).pairs
+        r = solve(pairs.base_T_head, pairs.cam_T_target)
+        err.append(pose_errors(r.head_T_cam, rig.head_T_cam))
+        pred.append((np.linalg.norm(r.std_rot_deg), np.linalg.norm(r.std_trans_m)))
+    ratio = np.sqrt(np.mean(np.square(err), 0)) / np.sqrt(np.mean(np.square(pred), 0))
+    assert np.all((0.4 < ratio) & (ratio < 2.5)), ratio
