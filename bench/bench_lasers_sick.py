@@ -5,7 +5,7 @@
   chunks; compared with the rate the wire allows at 500 kbaud (7320 bits a telegram) and the
   sensor's own 37.5 Hz for a full 0.5° scan (two 75 Hz sweeps).
 - CoLa A: an 811-value TiM5xx ``LMDscandata`` telegram (DIST1 + RSSI1, ~6 kB), splitter +
-  field parser; compared with the TiM5xx's 15 Hz.
+  field parser; compared with the TiM5xx's 15 Hz.  CoLa B: the same scan in binary (~2.5 kB).
 - End to end: the real LMS driver over a pty against the twin running flat out in this process
   (the twin shares the CPU, so this is a lower bound).
 Measured, never asserted.
@@ -18,7 +18,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from cgamap.drivers.cola import ColaAParser, parse_scandata, scan_from_data
+from cgamap.drivers.cola import (
+    ColaAParser,
+    ColaBParser,
+    parse_scandata,
+    parse_scandata_b,
+    scan_from_data,
+)
 from cgamap.drivers.lms2xx import (
     FrameParser,
     Lms2xxDriver,
@@ -69,6 +75,16 @@ def _cola_rate(telegram: bytes, seconds: float) -> float:
     return n / (time.perf_counter() - t0)
 
 
+def _cola_b_rate(telegram: bytes, seconds: float) -> float:
+    parser = ColaBParser()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for toks in parser.feed(telegram):
+            scan_from_data(parse_scandata_b(toks[2]), 0)
+            n += 1
+    return n / (time.perf_counter() - t0)
+
+
 def _crc_rate(data: bytes, seconds: float) -> float:
     n, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
@@ -104,10 +120,13 @@ def run() -> dict:
     chunked = _lms_rate(stream, 64, 50, 2.0)
 
     twin = ColaTwin("room")
-    body, _ = twin._scandata("sSN")
+    tel, _ = twin._scandata("sSN")
     twin.stop()
-    tel = b"\x02" + body.encode() + b"\x03"
     cola = _cola_rate(tel, 2.0)
+    twin_b = ColaTwin("room", binary=True)
+    tel_b, _ = twin_b._scandata("sSN")
+    twin_b.stop()
+    cola_b = _cola_b_rate(tel_b, 1.0)
 
     return {
         "lms2xx_361": {
@@ -126,6 +145,12 @@ def run() -> dict:
             "decode_scans_per_s": round(cola, 1),
             "sensor_rate_hz": TIM_HZ,
             "x_sensor_rate": round(cola / TIM_HZ, 1),
+        },
+        "cola_b_tim5xx_811": {
+            "telegram_bytes": len(tel_b),
+            "decode_scans_per_s": round(cola_b, 1),
+            "sensor_rate_hz": TIM_HZ,
+            "x_sensor_rate": round(cola_b / TIM_HZ, 1),
         },
         "lms2xx_end_to_end_pty_361": _lms_end_to_end(3.0),
     }

@@ -44,6 +44,8 @@ def register(subparsers) -> None:
                    help="lms2xx: angular resolution in degrees (1, 0.5, 0.25)")
     p.add_argument("--angle", type=int, default=None, help="lms2xx: field of view (180, 100)")
     p.add_argument("--units", choices=("cm", "mm"), default=None, help="lms2xx: range units")
+    p.add_argument("--cola", choices=("auto", "A", "B"), default=None,
+                   help="cola: ASCII (A) or binary (B) telegrams (auto: B on port 2112)")
     p.set_defaults(func=run)
 
 
@@ -67,6 +69,10 @@ def _driver(args: argparse.Namespace):
             kw["units"] = args.units
     elif any(v is not None for v in (args.baud, args.resolution, args.angle, args.units)):
         raise UsageError(f"--baud/--resolution/--angle/--units: only for lms2xx, not {args.model}")
+    if args.model == "cola" and args.cola is not None:
+        kw["protocol"] = args.cola
+    elif args.cola is not None:
+        raise UsageError(f"--cola: only for the cola model, not {args.model}")
     try:
         return cls(args.device, reconnect=True, stall_timeout=min(2.0, args.timeout), **kw)
     except ValueError as exc:

@@ -411,9 +411,11 @@ class ColaTwin:
 def main(args: argparse.Namespace) -> int:
     """``cgamap sim-device cola``: print host:port, serve until SIGINT/SIGTERM.
 
-    SIGUSR1 drops the connection and stops listening for 2 s; SIGUSR2 stalls for 2 s.
+    ``--port 2112`` serves CoLa B (binary), as the real devices do on that port; any other port
+    CoLa A.  SIGUSR1 drops the connection and stops listening for 2 s; SIGUSR2 stalls for 2 s.
     """
-    twin = ColaTwin(getattr(args, "world", "room"), port=getattr(args, "port", 0) or 0,
+    port = getattr(args, "port", 0) or 0
+    twin = ColaTwin(getattr(args, "world", "room"), port=port, binary=port == 2112,
                     seed=getattr(args, "seed", 0), fault_rate=getattr(args, "fault_rate", 0.0))
     stop = threading.Event()
     actions: collections.deque = collections.deque()
@@ -423,7 +425,8 @@ def main(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGUSR2, lambda *_: actions.append("stall"))
     twin.start()
     print(twin.address, flush=True)
-    print(f"CoLa A twin (TiM5xx) in world {twin.world.name!r}; SIGUSR1 = drop 2 s, "
+    print(f"CoLa {'B' if twin.binary else 'A'} twin (TiM5xx) in world {twin.world.name!r}; "
+          "SIGUSR1 = drop 2 s, "
           "SIGUSR2 = stall 2 s", file=sys.stderr, flush=True)
     try:
         while not stop.wait(0.1):
