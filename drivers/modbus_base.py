@@ -31,8 +31,9 @@ Polling runs on absolute deadlines ``t0 + k / rate``: a slow read delays one sam
 ones after it; slots missed while a read overran are skipped and counted (``dropped``).  A
 missing or late reply is a counted ``timeout`` after at most ``timeout_s``; the driver then waits
 one more timeout and drains the input, so a late reply is never taken for the next one.
-Exception responses count as ``device``, a lost connection as ``disconnects`` (reconnected on
-the next poll).  Writing wheel-speed set-points needs ``allow_setpoints: true`` (off by default).
+Exception responses count as ``device``, a lost connection as ``disconnects`` (reopened after
+``reconnect_s``; reads in between count as ``dropped``).  Writing wheel-speed set-points needs
+``allow_setpoints: true`` (off by default).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import logging
 import math
 import re
 import select
+import termios
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, fields, replace
@@ -182,6 +184,7 @@ class ModbusBaseConfig:
     ticks_per_rev: float = 4096.0
     left_sign: int = 1
     right_sign: int = 1
+    reconnect_s: float = 1.0           # wait this long before reopening a lost connection
     allow_setpoints: bool = False
     max_wheel_speed: float = 30.0      # rad/s: set-points beyond this are refused
 
@@ -246,6 +249,7 @@ class ModbusBase:
         self._seq = 0
         self._connected = False
         self._failing = False
+        self._next_connect = 0.0
 
     # -- connection ---------------------------------------------------------------------
     def _make_client(self) -> Any:
@@ -296,7 +300,7 @@ class ModbusBase:
                 while select.select([sock], [], [], 0)[0]:
                     if not sock.recv(4096):
                         break
-        except OSError:
+        except (OSError, termios.error):
             pass
 
     # -- transactions -------------------------------------------------------------------
@@ -312,15 +316,23 @@ class ModbusBase:
 
         try:
             if not self._connected:
+                if time.monotonic() < self._next_connect:   # backing off: a missed sample
+                    self.errors.dropped += 1
+                    return None
                 if not self._client.connect():
                     raise ConnectionException("reconnect failed")
                 self._connected = True
             rr = getattr(self._client, fn)(*args, device_id=self.device_id, **kw)
-        except (ConnectionException, OSError) as exc:  # refused, reset, pty closed
+        except (ConnectionException, OSError, termios.error) as exc:  # refused, reset, gone
             self.errors.disconnects += 1
             self._log_failure("connection lost", exc)
-            self._client.close()
+            try:
+                self._client.close()
+            except (OSError, termios.error):
+                pass
             self._connected = False
+            # reopening a vanished path at once could grab whatever device gets its name next
+            self._next_connect = time.monotonic() + self.config.reconnect_s
             return None
         except ModbusIOException as exc:
             self.errors.timeout += 1

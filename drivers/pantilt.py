@@ -19,7 +19,7 @@ bits 8-15 (bit 2 overheating, 3 encoder, 4 electrical shock, 5 overload, 0 input
 dynamixel-sdk workarounds, all in :class:`_Port` and :meth:`PanTilt._txrx` (devices.md §1.7):
 the port is opened with a 2 ms read timeout instead of ``timeout=0`` (the SDK's receive loop
 spins on ``readPort`` and holds the GIL); the packet timeout uses a configurable latency
-(``latency_ms``, default 50, instead of the module constant 16 that fails under load) measured on
+(``latency_ms``, default 100, instead of the module constant 16 that fails under load) measured on
 ``time.monotonic`` (not wall time, which NTP steps); ports may be URLs (``socket://``); and after
 any failed transaction the driver waits one more packet timeout and drops the input, so a late
 reply is never taken for the next request's.  ``max_timeouts`` failures in a row raise
@@ -94,7 +94,7 @@ class PanTiltConfig:
     tilt: JointConfig = field(default_factory=lambda: JointConfig(2, -1.0, 1.0))
     models: tuple[int, ...] = tuple(KNOWN_MODELS)
     profile_velocity: float = 2.0          # rad/s (0: the servo's velocity limit)
-    latency_ms: float = 50.0               # packet timeout = bytes on the wire + 2 latency + 2 ms
+    latency_ms: float = 100.0              # packet timeout = bytes on the wire + 2 latency + 2 ms
     read_timeout_s: float = 0.002          # per readPort call: bounds the SDK's receive loop
     max_timeouts: int = 5                  # failures in a row before PanTiltBusError
 

@@ -145,7 +145,7 @@ def test_servo_refuses_goal_beyond_its_own_limits(twin):
 def test_fault_counted_then_recovered(twin, fault, counter):
     with head(twin) as h:
         h.torque(True)
-        twin.set_fault(fault, delay_s=0.15)
+        twin.set_fault(fault, delay_s=0.3)   # later than the 202 ms timeout, within the resync
         before = h.errors.as_dict()[counter]
         assert h.read_state() is None
         assert h.errors.as_dict()[counter] == before + 1
@@ -291,14 +291,14 @@ def test_vanished_bus_raises_bus_error():
 
 
 def test_line_noise_is_counted_and_survived():
-    tw = DynamixelBusTwin(fault_rate=0.02, seed=5)
+    tw = DynamixelBusTwin(fault_rate=0.005, seed=5)
     tw.start()
     try:
-        with PanTilt(PanTiltConfig(url=tw.path, latency_ms=20, max_timeouts=50)) as h:
-            got = [h.read_state() for _ in range(40)]
+        with PanTilt(PanTiltConfig(url=tw.path, max_timeouts=50)) as h:
+            got = [h.read_state() for _ in range(20)]
             ok = sum(s is not None for s in got)
             bad = h.errors.checksum + h.errors.timeout
-            assert ok > 0 and bad > 0 and ok + bad >= 40
+            assert ok > 0 and bad > 0 and ok + bad >= 20
             assert all(abs(s.pan) < 1e-9 for s in got if s is not None)  # never a garbled value
     finally:
         tw.stop()
