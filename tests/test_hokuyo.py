@@ -397,6 +397,16 @@ def test_byte_errors_1e3_intact_scans_arrive_corrupted_never(tmp_path, model, n_
             assert_same_mm(s.ranges, rec[ts].values, dmin, dmax)
 
 
+def test_process_epoch_is_this_process_start(monkeypatch):
+    from cgamap.drivers.sim.hokuyo import process_epoch
+
+    monkeypatch.delenv("CGAMAP_SIM_EPOCH_NS", raising=False)
+    assert 0.0 < time.monotonic() - process_epoch() < 3600.0 or \
+        process_epoch() == pytest.approx(time.monotonic(), abs=1.0)   # non-Linux fallback
+    monkeypatch.setenv("CGAMAP_SIM_EPOCH_NS", "5000000000")
+    assert process_epoch() == 5.0
+
+
 # -- the CLI twin ----------------------------------------------------------------------------
 
 def test_sim_device_cli_serves_until_sigterm():
@@ -405,12 +415,16 @@ def test_sim_device_cli_serves_until_sigterm():
             "p = argparse.ArgumentParser(); cmd_sim.register(p.add_subparsers()); "
             "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))")
     cmd = [sys.executable, "-c", boot, "sim-device", "hokuyo", "--seed", "2"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # the device clock starts at the epoch its starter gives (here: 10 s ago)
+    env = dict(os.environ, CGAMAP_SIM_EPOCH_NS=str(time.monotonic_ns() - 10_000_000_000))
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
     try:
         path = proc.stdout.readline().strip()
         assert path and os.path.exists(path)
         with HokuyoDriver(path, 0.5, command_timeout=1.0) as d:
-            assert d.read_scan(2.0) is not None
+            s = d.read_scan(2.0)
+            assert s is not None and s.device_stamp >= 10_000
         proc.send_signal(signal.SIGUSR1)        # unplug for 1 s, then back at the same path
         d2 = HokuyoDriver(path, 0.5, command_timeout=1.0)
         assert d2.read_scan(4.0) is not None    # connects (again) once the twin is back

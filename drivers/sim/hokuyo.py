@@ -43,7 +43,10 @@ MODELS = {
     "URG-04LX": dict(dmin=20, dmax=5600, ares=1024, amin=44, amax=725, afrt=384, scan=600,
                      prod="SOKUIKI Sensor URG-04LX", firm="3.3.00,06/12/20(1,40-1010mm)"),
 }
-ALIASES = {"utm": "UTM-30LX", "utm-30lx": "UTM-30LX", "urg": "URG-04LX", "urg-04lx": "URG-04LX"}
+MODELS["UST-10LX"] = dict(MODELS["UTM-30LX"], dmin=20, dmax=30000,
+                         prod="SOKUIKI Sensor UST-10LX", firm="1.0.0")
+ALIASES = {"utm": "UTM-30LX", "utm-30lx": "UTM-30LX", "urg": "URG-04LX", "urg-04lx": "URG-04LX",
+           "ust": "UST-10LX", "ust-10lx": "UST-10LX"}
 
 _SCAN_CMD = re.compile(r"^([GM])([DSE])(\d{4})(\d{4})(\d{2})(?:(\d)(\d{2}))?(;.{0,16})?$")
 _WIDTH = {"D": 3, "S": 2, "E": 3}
@@ -129,7 +132,8 @@ class HokuyoTwin:
     def __init__(self, model: str = "UTM-30LX", world: str | World = "corridor", *,
                  fault_rate: float = 0.0, seed: int = 0, link: str | None = None,
                  speed: float = 1.0, noise: NoiseModel | None = None,
-                 scip1: bool = False, clock0_ms: int = 0, status: str = "00") -> None:
+                 scip1: bool = False, clock0_ms: int = 0, status: str = "00",
+                 epoch: float | None = None) -> None:
         name = ALIASES.get(model.lower(), model)
         if name not in MODELS:
             raise ValueError(f"unknown Hokuyo model {model!r}; choose from {sorted(MODELS)}")
@@ -150,7 +154,8 @@ class HokuyoTwin:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._t0 = time.monotonic()
+        # host monotonic time (s) at which the device clock reads clock0_ms
+        self._t0 = time.monotonic() if epoch is None else float(epoch)
         self._truncate = 0
         self._unstable = 0
         self._stall_until = 0.0
@@ -441,19 +446,45 @@ class HokuyoTwin:
         self._send(block, SentScan(ts, True, mm, echo), cut=cut)
 
 
+def process_epoch() -> float:
+    """Host monotonic time (s) at which the device clock starts when run as a process.
+
+    ``CGAMAP_SIM_EPOCH_NS`` (monotonic ns, set by whoever starts the twin) if given; else when
+    this process started (Linux /proc, 10 ms resolution), so that "just before the twin was
+    started" is the clock's zero for its parent; else now.
+    """
+    env = os.environ.get("CGAMAP_SIM_EPOCH_NS")
+    if env:
+        with contextlib.suppress(ValueError):
+            return int(env) / 1e9
+    try:
+        with open("/proc/self/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        started = int(fields[19]) / os.sysconf("SC_CLK_TCK")     # since boot, s
+        age = time.clock_gettime(time.CLOCK_BOOTTIME) - started
+        if 0.0 <= age < 60.0:
+            return time.monotonic() - age
+    except (OSError, ValueError, IndexError, AttributeError):
+        pass
+    return time.monotonic()
+
+
 def main(args: argparse.Namespace) -> int:
     """``cgamap sim-device hokuyo``: serve on a pty until SIGINT/SIGTERM.
 
-    Prints the device path first.  SIGUSR1 unplugs the device for 1 s (then it returns at the
-    same path); SIGUSR2 stalls it for 2 s.  ``--model`` (if the CLI gives one) or the
-    environment variable ``CGAMAP_HOKUYO_MODEL`` picks UTM-30LX (default) or URG-04LX.
+    Prints the device path first.  The device clock (SCIP timestamps, and the trajectory time
+    the world is sensed at) counts from :func:`process_epoch`.  SIGUSR1 unplugs the device for
+    1 s (then it returns at the same path); SIGUSR2 stalls it for 2 s.  ``--model`` (if the CLI
+    gives one) or the environment variable ``CGAMAP_HOKUYO_MODEL`` picks the model (UTM-30LX
+    by default, URG-04LX, UST-10LX).
     """
     model = getattr(args, "model", None) or os.environ.get("CGAMAP_HOKUYO_MODEL", "UTM-30LX")
     tmp = tempfile.mkdtemp(prefix="cgamap-hokuyo-")
     try:
         twin = HokuyoTwin(model, getattr(args, "world", "corridor"),
                           fault_rate=getattr(args, "fault_rate", 0.0) or 0.0,
-                          seed=getattr(args, "seed", 0) or 0, link=os.path.join(tmp, "ttyACM0"))
+                          seed=getattr(args, "seed", 0) or 0, link=os.path.join(tmp, "ttyACM0"),
+                          epoch=process_epoch())
     except ValueError as exc:   # drivers may not import the CLI layer: report like it does
         os.rmdir(tmp)
         print(f"cgamap: sim-device hokuyo: {exc}", file=sys.stderr)
