@@ -369,3 +369,14 @@ def test_rtu_line_noise_is_counted_and_survived():
             assert all(m.left == 12345 for m in ok)        # a CRC-checked frame or nothing
     finally:
         tw.stop()
+
+
+def test_16bit_unsigned_encoders_wrap_on_the_wire(twin_factory):
+    regs = RegisterMap(left_ticks=RegisterField(0, words=1, signed=False),
+                       right_ticks=RegisterField(1, words=1, signed=False),
+                       left_speed=None, right_speed=None, status=None)
+    tw = twin_factory(registers=regs, encoder_offset=65000, time_scale=5.0)
+    pose, msgs = drive(tw, [(2.0, 10.0, 10.0)], registers=regs)   # 1 m: 13038 ticks
+    raw = [m.left % 65536 for m in msgs if m is not None]
+    assert max(raw) > 60000 and min(raw) < 10000                   # the register wrapped
+    close_pose(pose, (1.0, 0.0, 0.0), 1e-3, 1e-9)

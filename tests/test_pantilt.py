@@ -302,3 +302,34 @@ def test_line_noise_is_counted_and_survived():
             assert all(abs(s.pan) < 1e-9 for s in got if s is not None)  # never a garbled value
     finally:
         tw.stop()
+
+
+def test_sim_device_process_with_cli_in_another_process():
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    twin_code = ("import sys; from cgamap.daemon import cli; "
+                 "cli.COMMAND_MODULES = ['cgamap.daemon.cmd_sim']; "
+                 "sys.exit(cli.main(['sim-device', 'dynamixel-pantilt']))")
+    cli_code = ("import sys; from cgamap.daemon import cli; "
+                "cli.COMMAND_MODULES = ['cgamap.daemon.cmd_base']; "
+                "sys.exit(cli.main(sys.argv[1:]))")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-c", twin_code], stdout=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/")
+        out = subprocess.run([sys.executable, "-c", cli_code, "pantilt", "--device", path,
+                              "--velocity", "5", "move", "-0.5", "0.25", "--json"],
+                             capture_output=True, text=True, timeout=60, env=env)
+        assert out.returncode == 0, out.stderr
+        state = json.loads(out.stdout)
+        assert state["pan"] == pytest.approx(-0.5, abs=0.005)
+        assert state["tilt"] == pytest.approx(0.25, abs=0.005)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
