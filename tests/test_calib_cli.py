@@ -190,6 +190,10 @@ def test_collect_charuco_sim(tmp_path, capsys):
                        "--out", str(out), "--json"], capsys)
     assert code == 0
     assert len(json.loads(out.read_text())["pairs"]) >= 8
+    code, stdout, _ = _run(["calib", "hand-eye", "--pairs", str(out), "--json"], capsys)
+    rot, trans = pose_errors(np.array(json.loads(stdout)["head_T_cam"]),
+                             default_rig(0).head_T_cam)
+    assert code == 0 and rot < 0.5 and trans < 0.005
 
 
 def test_collect_argument_errors(capsys):
