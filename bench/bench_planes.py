@@ -46,6 +46,12 @@ def _errors(planes, truth):
 
 
 def _data_dir() -> Path:
+    try:  # bench/run.py puts tests/ on the path: one data setting for tests and benchmarks
+        from conftest import data_dir
+
+        return data_dir()
+    except ImportError:
+        pass
     env = os.environ.get("CGAMAP_DATA")
     if env:
         return Path(env)
