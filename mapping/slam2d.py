@@ -16,6 +16,7 @@ from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_pose
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .posegraph import PoseGraph, relative, wrap
+from .relocalize import RelocParams, relocalize
 from .segments import SegmentParams, Segments, extract_segments
 
 
@@ -34,12 +35,16 @@ def invert(p) -> np.ndarray:
 @dataclass(frozen=True)
 class LoopParams:
     enabled: bool = True
+    every: int = 2                # try closing loops on every n-th scan
     min_separation: int = 25      # scans between a node and the visits it may close with
-    radius: float = 4.0           # look for earlier visits within this distance (m)
-    candidates: int = 2           # earlier visits tried per scan
-    window: int = 3               # an earlier visit's submap: its scan +- window scans
-    min_fraction: float = 0.5     # of the scan's segment length matched
-    max_std: float = 0.08         # (m) the match must fix the translation in every direction
+    radius: float = 6.0           # look for earlier visits within this distance (m)
+    candidates: int = 1           # earlier visits tried per scan
+    window: int = 4               # an earlier visit's submap: its scan +- window scans
+    min_score: float = 0.8        # fraction of the scan's points on the submap
+    ambiguity: float = 0.08       # no other pose may score within this of the best
+    max_jump: float = 3.0         # the closure may move the pose by at most this (m) ...
+    max_turn: float = np.deg2rad(25.0)  # ... and turn it by at most this
+    sigma: tuple[float, float] = (0.05, 0.01)  # loop edge std (m, rad)
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations
@@ -51,9 +56,14 @@ class MapperParams:
     correction: CorrectionParams = field(default_factory=CorrectionParams)
     map: MapParams = field(default_factory=MapParams)
     loop: LoopParams = field(default_factory=LoopParams)
+    reloc: RelocParams = field(default_factory=lambda: RelocParams(min_score=0.6, refine=4))
     mount: tuple[float, float, float] | None = None  # laser pose in the base frame (M_BL)
     seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)
     odo_sigma: tuple[float, float, float, float] = (0.05, 0.10, 0.02, 0.03)  # unmatched step
+    # online odometry calibration: heading drift per metre and translation scale, learnt from
+    # the corrections of well-matched steps (exponential average with this weight)
+    calib_rate: float = 0.05
+    calib_min_fraction: float = 0.5
 
 
 @dataclass
@@ -78,6 +88,9 @@ class Mapper:
         self.pending = False
         self.loops = 0
         self.optimizations = 0
+        self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
+        self.scale = 1.0         # learnt ratio of true to odometry distance
+        self.loop_stats = {"tried": 0, "no_pose": 0, "low_score": 0, "ambiguous": 0}
 
     @property
     def count(self) -> int:
@@ -108,15 +121,23 @@ class Mapper:
             self.last_odom = odom_l
             self._merge(seg, i)
             return StepResult(pose, len(seg), None)
-        inc = relative(self.last_odom, odom_l)
+        raw = relative(self.last_odom, odom_l)
         self.last_odom = odom_l
+        d_odo = float(np.hypot(raw[0], raw[1]))
+        inc = np.array([raw[0] * self.scale, raw[1] * self.scale,
+                        raw[2] - self.drift_per_m * d_odo])
         prev = self.graph.poses[-1]
         pred = compose(prev, inc)
-        step = float(np.hypot(inc[0], inc[1]) + 0.3 * abs(inc[2]))
+        step = float(d_odo + 0.3 * abs(inc[2]))
         pose = pred
         if len(self.map) and len(seg):
             corr = correct_pose(seg, self.map.a, self.map.b, pred, step, P.correction)
             pose = corr.pose
+            if corr.matched_fraction >= P.calib_min_fraction and d_odo > 0.2:
+                got = relative(prev, pose)
+                a = P.calib_rate
+                self.drift_per_m += a * (float(wrap(raw[2] - got[2])) / d_odo - self.drift_per_m)
+                self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
         if corr is not None and corr.matched_fraction > 0.3:
             st, sr = P.seq_sigma
@@ -144,42 +165,60 @@ class Mapper:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)
 
     def _close_loops(self, i: int, seg: Segments) -> int:
+        """Match scan i against the segments of an earlier visit (its scans +- window, in
+        that visit's frame) by Hough-domain relocalisation (§V), so drift of metres and
+        degrees is still caught; an unambiguous, well-scoring result becomes a loop edge."""
         LP = self.params.loop
-        if i <= LP.min_separation or not len(seg) or not len(self.map.c_node):
+        if i <= LP.min_separation or len(seg) < 2 or not len(self.map.c_node):
+            return 0
+        if i % LP.every:
             return 0
         X = self.poses
         old = X[: i - LP.min_separation + 1]
         dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
         order = np.argsort(dist)
         tried, added = [], 0
-        for j in order[: 4 * LP.candidates]:
+        for j in order[: 8 * LP.candidates]:
             if dist[j] > LP.radius or len(tried) >= LP.candidates:
                 break
-            if any(abs(int(j) - t) <= LP.window for t in tried):
+            if any(abs(int(j) - t) <= 2 * LP.window for t in tried):
                 continue
             tried.append(int(j))
-            sel = np.abs(self.map.c_node - j) <= LP.window
-            sel &= self.map.c_node < i - LP.min_separation + LP.window + 1
-            if sel.sum() < 2:
+            sel = (np.abs(self.map.c_node - j) <= LP.window) & (
+                self.map.c_node <= i - LP.min_separation)
+            if sel.sum() < 3:
                 continue
             nodes = self.map.c_node[sel]
             rel = relative(X[j], X[nodes])  # submap scans in j's frame
             c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
             R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-            sa = np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2]
-            sb = np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2]
+            sub = LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
+                          np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
             guess = relative(X[j], X[i])
-            corr = correct_pose(seg, sa, sb, guess, 4.0, self.params.correction)
-            std = np.sqrt(np.linalg.eigvalsh(corr.cov[:2, :2]).max())
-            if corr.matched_fraction < LP.min_fraction or std > LP.max_std:
+            res = relocalize(sub, seg, None, self.params.reloc)
+            self.loop_stats["tried"] += 1
+            near = [h for h in res.hypotheses
+                    if np.hypot(*(h.pose[:2] - guess[:2])) < LP.max_jump
+                    and abs(wrap(h.pose[2] - guess[2])) < LP.max_turn]
+            if not near:
+                self.loop_stats["no_pose"] += 1
                 continue
-            if np.count_nonzero(corr.matches >= 0) < 2:
+            if near[0].score < LP.min_score:
+                self.loop_stats["low_score"] += 1
                 continue
-            cov = corr.cov + np.diag([0.02 ** 2, 0.02 ** 2, 0.005 ** 2])
-            self.graph.add_edge(int(j), i, corr.pose, np.linalg.inv(cov), loop=True)
+            best = near[0]
+            rivals = [h for h in res.hypotheses if h is not best
+                      and np.hypot(*(h.pose[:2] - best.pose[:2])) > 0.3
+                      and h.score > best.score - LP.ambiguity]
+            if rivals:
+                self.loop_stats["ambiguous"] += 1
+                continue
+            st, sr = LP.sigma
+            self.graph.add_edge(int(j), i, best.pose, np.diag([st ** -2, st ** -2, sr ** -2]),
+                                loop=True)
             self.loops += 1
             added += 1
-            e = relative(guess, corr.pose)
+            e = relative(guess, best.pose)
             if np.hypot(e[0], e[1]) > LP.optimize_trans or abs(e[2]) > LP.optimize_rot:
                 self.pending = True
         return added
