@@ -337,6 +337,18 @@ def test_refusals_raise_device_errors(twin):
         Lms2xxDriver(twin.path, angle=180, resolution=0.25)
 
 
+def test_nak_byte_for_a_bad_crc(twin):
+    with _driver(twin) as drv:
+        drv.stop_streaming()
+        good_send = drv.send
+        drv.send = lambda p: drv.transport.write(frame(p)[:-1] + b"\x00")   # spoil the CRC
+        with pytest.raises(DeviceError, match="NAK"):
+            drv.transact(b"\x31", timeout=0.5, retries=1)
+        assert drv.errors.device == 2 and twin.stats["bad_crc"] == 2
+        drv.send = good_send
+        assert drv.transact(b"\x31")[0] == 0xB1
+
+
 def test_no_device_answers(tmp_path):
     from cgamap.drivers.sim.pty_device import PtyDevice
 
