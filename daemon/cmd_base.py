@@ -16,7 +16,9 @@ with exit code 1.
 ``pantilt`` angles are radians (pan about the base z axis, positive left; tilt about the head's
 y axis, positive down); ``move`` turns torque on, checks the configured limits before sending
 and waits until the goal is reached unless ``--no-wait``; ``status --json`` gives ``pan``,
-``tilt``, ``moving``, ``hardware_error`` (per servo), ``models`` and ``errors``.
+``tilt``, ``moving``, ``hardware_error`` (per servo), ``models`` and ``errors``.  Exit codes:
+0 ok, 1 device absent or not answering, 2 bad input (e.g. a goal outside the limits, refused
+before anything is sent), 3 a servo reports a hardware error (``REBOOT`` clears it).
 """
 
 from __future__ import annotations

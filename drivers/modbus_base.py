@@ -314,6 +314,8 @@ class ModbusBase:
         """One Modbus transaction; None (and a counted error) if it failed."""
         from pymodbus.exceptions import ConnectionException, ModbusIOException
 
+        if self._client is None:
+            raise ModbusBaseError(f"{self.config.url}: not open")
         try:
             if not self._connected:
                 if time.monotonic() < self._next_connect:   # backing off: a missed sample

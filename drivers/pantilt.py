@@ -201,6 +201,7 @@ class PanTilt:
         resynchronise after them; returns the call's value, or None if it failed."""
         from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS
 
+        self._check_open(what)
         try:
             out = call()
         except _PORT_ERRORS as exc:
@@ -226,6 +227,10 @@ class PanTilt:
         if err:
             self._note_status_error(what, dxl_id, err)
         return out
+
+    def _check_open(self, what: str) -> None:
+        if self._port is None or not self._port.is_open or self._ph is None:
+            raise PanTiltError(f"{self.config.url}: {what}: the head is not open")
 
     def _note_status_error(self, what: str, dxl_id: int | None, err: int) -> None:
         self.errors.device += 1  # bit 7 (alert): read_state reads address 70 for the cause
@@ -294,6 +299,7 @@ class PanTilt:
     def _sync_write(self, what: str, addr: int, size: int, values: dict[int, int]) -> bool:
         from dynamixel_sdk import GroupSyncWrite
 
+        self._check_open(what)
         gsw = GroupSyncWrite(self._port, self._ph, addr, size)
         for dxl_id, v in values.items():
             gsw.addParam(dxl_id, list((int(v) & ((1 << 8 * size) - 1)).to_bytes(size, "little")))
@@ -345,6 +351,7 @@ class PanTilt:
     def _sync_read(self, what: str, addr: int, size: int) -> dict[int, bytes] | None:
         from dynamixel_sdk import GroupSyncRead
 
+        self._check_open(what)
         gsr = GroupSyncRead(self._port, self._ph, addr, size)
         for i in self.ids:
             gsr.addParam(i)

@@ -333,3 +333,11 @@ def test_sim_device_process_with_cli_in_another_process():
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
+
+
+def test_commands_before_open_are_refused():
+    h = PanTilt(PanTiltConfig(url="/dev/null-does-not-exist"))
+    with pytest.raises(PanTiltError, match="not open"):
+        h.read_state()
+    with pytest.raises(PanTiltError, match="cannot open"):
+        h.open()
