@@ -197,7 +197,7 @@ def assert_same_mm(ranges: np.ndarray, sent_mm: np.ndarray, dmin=23, dmax=60000)
 def _driver(tw, **kw) -> HokuyoDriver:
     kw.setdefault("command_timeout", 1.0)
     kw.setdefault("stall_timeout", 0.5)
-    return HokuyoDriver(tw.path, 0.5, **kw)
+    return HokuyoDriver(tw.url, 0.5, **kw)
 
 
 def test_init_and_continuous_streaming(twin):
@@ -285,6 +285,21 @@ def test_scip11_switch_tm_mode_and_time_sync(tmp_path):
         tw._tm_mode = True                      # left in time-adjust mode by someone
         with _driver(tw) as d:
             assert tw.commands[-8:-5] == ["QT", "TM2", "QT"]
+            assert d.read_scan(2.0) is not None
+
+
+def test_ethernet_model_over_tcp_with_unplug():
+    with HokuyoTwin("UST-10LX", tcp_port=0, speed=4.0) as tw:
+        assert tw.url.startswith("tcp://127.0.0.1:")
+        with _driver(tw) as d:
+            assert d.info.model == "UST-10LX" and d.info.dmax == 30000
+            assert len(d.read_scan(2.0).ranges) == 1081
+            tw.disconnect()                     # port closed: connection refused
+            for _ in range(10):
+                if d.read_scan(0.3) is None:
+                    break
+            assert d.errors.disconnects >= 1 and not d.connected
+            tw.reconnect()
             assert d.read_scan(2.0) is not None
 
 

@@ -1,4 +1,5 @@
-"""Simulated Hokuyo laser speaking SCIP 2.0 from the device side, on a pseudo-terminal.
+"""Simulated Hokuyo laser speaking SCIP 2.0 from the device side, on a pseudo-terminal
+(serial/USB models) or a loopback TCP port (Ethernet models, ``tcp_port=``).
 
 Written apart from the driver (its own encoder, checksum and command handling) so that the
 driver's tests exercise two independent readings of the protocol.  It ray-casts a simulated
@@ -9,7 +10,8 @@ world along its trajectory (range noise, dropouts) and can inject faults on dema
 - :meth:`HokuyoTwin.stall`    : send and answer nothing for a while;
 - :meth:`HokuyoTwin.unstable` : the next n scans come as ``0M`` (unstable) error blocks;
 - :meth:`HokuyoTwin.disconnect` / :meth:`HokuyoTwin.reconnect`: the pty vanishes and returns
-  behind the same path (a USB unplug: the sensor restarts with the laser off).
+  behind the same path, or the TCP port closes and listens again (an unplug: the sensor
+  restarts with the laser off).
 
 Every scan reply sent is recorded in :attr:`HokuyoTwin.sent` (device timestamp, whether it
 went out intact, the values encoded) so tests can check what the driver delivered.
@@ -35,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .pty_device import PtyClosed, PtyDevice
+from .tcp_device import TcpDevice
 from .world import NoiseModel, World, get_world
 
 MODELS = {
@@ -133,7 +136,7 @@ class HokuyoTwin:
                  fault_rate: float = 0.0, seed: int = 0, link: str | None = None,
                  speed: float = 1.0, noise: NoiseModel | None = None,
                  scip1: bool = False, clock0_ms: int = 0, status: str = "00",
-                 epoch: float | None = None) -> None:
+                 epoch: float | None = None, tcp_port: int | None = None) -> None:
         name = ALIASES.get(model.lower(), model)
         if name not in MODELS:
             raise ValueError(f"unknown Hokuyo model {model!r}; choose from {sorted(MODELS)}")
@@ -149,7 +152,9 @@ class HokuyoTwin:
         self.bm_status = status               # answer to BM (e.g. "01" = laser malfunction)
         self.sent: deque[SentScan] = deque(maxlen=100000)
         self.commands: list[str] = []          # every command line received
-        self.pty = PtyDevice(link)
+        # a pty (serial and USB models), or loopback TCP (Ethernet models) with tcp_port
+        self.dev: PtyDevice | TcpDevice = PtyDevice(link) if tcp_port is None else \
+            TcpDevice(port=tcp_port)
         self._scip2 = not scip1
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -165,7 +170,13 @@ class HokuyoTwin:
     # -- life cycle ------------------------------------------------------------------------
     @property
     def path(self) -> str:
-        return self.pty.path
+        """The pty path (or link), or host:port for TCP."""
+        return self.dev.path
+
+    @property
+    def url(self) -> str:
+        """What to give the driver: the pty path or ``tcp://host:port``."""
+        return self.dev.path if isinstance(self.dev, PtyDevice) else f"tcp://{self.dev.path}"
 
     def start(self) -> HokuyoTwin:
         self._thread = threading.Thread(target=self._serve, name="hokuyo-twin", daemon=True)
@@ -176,7 +187,7 @@ class HokuyoTwin:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        self.pty.close()
+        self.dev.close()
 
     def __enter__(self) -> HokuyoTwin:
         return self.start()
@@ -203,14 +214,14 @@ class HokuyoTwin:
     def disconnect(self) -> None:
         """Unplug: the pty pair closes and its path disappears."""
         with self._lock:
-            self.pty.disconnect()
+            self.dev.disconnect()
 
     def reconnect(self) -> None:
         """Plug back in: a fresh pty behind the same path; the sensor powers up again."""
         with self._lock:
             self._power_on()
             self._inbuf = b""
-            self.pty.reconnect()
+            self.dev.reconnect()
 
     @property
     def streaming(self) -> bool:
@@ -239,7 +250,7 @@ class HokuyoTwin:
     def _serve(self) -> None:
         while not self._stop.is_set():
             with self._lock:
-                open_ = self.pty.is_open
+                open_ = self.dev.is_open
                 stalled = time.monotonic() < self._stall_until
             if not open_ or stalled:
                 time.sleep(0.005)
@@ -248,7 +259,7 @@ class HokuyoTwin:
             if self._stream is not None:
                 wait = max(0.0, min(wait, self._stream["due"] - time.monotonic()))
             try:
-                data = self.pty.read(4096, wait)
+                data = self.dev.read(4096, wait)
                 if data:
                     self._on_input(data)
                 self._maybe_stream()
@@ -281,7 +292,7 @@ class HokuyoTwin:
             scan.intact = intact
             scan.undetectable = not intact and not cut and _passes_checks(orig, data)
             self.sent.append(scan)
-        self.pty.write(data, timeout=0.5)
+        self.dev.write(data, timeout=0.5)
 
     def _reply(self, echo: str, status: str, body: bytes = b"") -> None:
         st = status.encode("ascii")
@@ -470,22 +481,25 @@ def process_epoch() -> float:
 
 
 def main(args: argparse.Namespace) -> int:
-    """``cgamap sim-device hokuyo``: serve on a pty until SIGINT/SIGTERM.
+    """``cgamap sim-device hokuyo``: serve on a pty (on TCP for the Ethernet UST-10LX, or with
+    ``--port`` N > 0) until SIGINT/SIGTERM.
 
-    Prints the device path first.  The device clock (SCIP timestamps, and the trajectory time
-    the world is sensed at) counts from :func:`process_epoch`.  SIGUSR1 unplugs the device for
-    1 s (then it returns at the same path); SIGUSR2 stalls it for 2 s.  ``--model`` (if the CLI
-    gives one) or the environment variable ``CGAMAP_HOKUYO_MODEL`` picks the model (UTM-30LX
-    by default, URG-04LX, UST-10LX).
+    Prints the device path (or host:port) first.  The device clock (SCIP timestamps, and the
+    trajectory time the world is sensed at) counts from :func:`process_epoch`.  SIGUSR1
+    unplugs the device for 1 s (then it returns at the same path); SIGUSR2 stalls it for 2 s.
+    ``--model`` (if the CLI gives one) or the environment variable ``CGAMAP_HOKUYO_MODEL``
+    picks the model (UTM-30LX by default, URG-04LX, UST-10LX).
     """
     model = getattr(args, "model", None) or os.environ.get("CGAMAP_HOKUYO_MODEL", "UTM-30LX")
+    port = getattr(args, "port", 0) or 0
+    tcp = port > 0 or ALIASES.get(model.lower(), model) == "UST-10LX"
     tmp = tempfile.mkdtemp(prefix="cgamap-hokuyo-")
     try:
         twin = HokuyoTwin(model, getattr(args, "world", "corridor"),
                           fault_rate=getattr(args, "fault_rate", 0.0) or 0.0,
                           seed=getattr(args, "seed", 0) or 0, link=os.path.join(tmp, "ttyACM0"),
-                          epoch=process_epoch())
-    except ValueError as exc:   # drivers may not import the CLI layer: report like it does
+                          epoch=process_epoch(), tcp_port=port if tcp else None)
+    except (ValueError, OSError) as exc:   # drivers may not import the CLI: report like it does
         os.rmdir(tmp)
         print(f"cgamap: sim-device hokuyo: {exc}", file=sys.stderr)
         return 2
