@@ -2,6 +2,7 @@
 
     cgamap odom --device tcp://192.168.0.10:502 [--count N] [--json] [--rate HZ]
     cgamap odom --device /dev/ttyUSB1?baudrate=115200 --wheel-radius 0.075 --track 0.4
+    cgamap odom --device 127.0.0.1:5020 --drive 4,6 --count 100    # teleop / the twin
     cgamap pantilt --device /dev/ttyUSB0 [--ids 1,2] status [--json]
     cgamap pantilt --device /dev/ttyUSB0 move 0.5 -0.2 [--no-wait] [--json]
     cgamap pantilt --device /dev/ttyUSB0 torque on|off
@@ -11,7 +12,8 @@ mapping.odometry (exact arcs): each line is the pose since the command started, 
 (m, m, rad) with the forward and turn rates; with ``--json`` one object a line with ``seq``,
 ``stamp_ns``, ``x``, ``y``, ``theta``, ``v``, ``w``, ``left``, ``right``, ``estop``, ``errors``.
 ``--count 0`` streams until interrupted; a base that stays silent for ``--timeout`` s ends it
-with exit code 1.
+with exit code 1.  ``--drive LEFT,RIGHT`` writes wheel-speed set-points (rad/s) for the run and
+0,0 at its end: the only way this command moves the base.
 
 ``pantilt`` angles are radians (pan about the base z axis, positive left; tilt about the head's
 y axis, positive down); ``move`` turns torque on, checks the configured limits before sending
@@ -46,6 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--wheel-radius", type=float, default=0.05, help="m")
     p.add_argument("--track", type=float, default=0.30, help="track width, m")
     p.add_argument("--ticks-per-rev", type=float, default=4096.0, help="encoder ticks per turn")
+    p.add_argument("--drive", default=None, metavar="LEFT,RIGHT",
+                   help="also command these wheel speeds (rad/s) while streaming, and 0,0 at "
+                        "the end (enables the base's set-point writing for this run)")
     p.set_defaults(func=run_odom)
 
     q = sub.add_parser("pantilt", help="status, move and torque of the Dynamixel pan-tilt head",
@@ -81,12 +86,15 @@ def run_odom(args: argparse.Namespace) -> int:
 
     if args.rate <= 0 or args.count < 0 or args.every < 1:
         raise UsageError("odom: --rate must be > 0, --count >= 0, --every >= 1")
+    drive = _pair(args.drive, "--drive", what_cmd="odom") if args.drive else None
     cfg = ModbusBaseConfig(url=args.device, device_id=args.unit, rate_hz=args.rate,
                            wheel_radius=args.wheel_radius, track_width=args.track,
-                           ticks_per_rev=args.ticks_per_rev)
+                           ticks_per_rev=args.ticks_per_rev, allow_setpoints=drive is not None)
     geom = WheelGeometry(cfg.wheel_radius, cfg.track_width, cfg.ticks_per_rev)
     try:
         base = ModbusBase(cfg).open()
+        if drive is not None and not base.set_wheel_speeds(*drive):
+            raise ModbusBaseError("wheel speed set-point not acknowledged")
     except ModbusBaseError as exc:
         raise UsageError(f"odom: {exc}", 1) from None
     odo = OdometryIntegrator(geom)
@@ -113,18 +121,20 @@ def run_odom(args: argparse.Namespace) -> int:
     except ModbusBaseError as exc:
         raise UsageError(f"odom: {exc}", 1) from None
     finally:
+        if drive is not None:
+            base.set_wheel_speeds(0.0, 0.0)   # best effort: leave the base standing
         base.close()
     return 0
 
 
 # -- pantilt ----------------------------------------------------------------------------------
 
-def _pair(text: str, what: str, cast=float) -> tuple:
+def _pair(text: str, what: str, cast=float, what_cmd: str = "pantilt") -> tuple:
     try:
         a, b = (cast(v) for v in text.split(","))
     except ValueError:
-        raise UsageError(f"pantilt: {what}: expected two comma-separated values, got {text!r}") \
-            from None
+        raise UsageError(f"{what_cmd}: {what}: expected two comma-separated values, "
+                         f"got {text!r}") from None
     return a, b
 
 

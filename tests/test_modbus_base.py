@@ -380,3 +380,15 @@ def test_16bit_unsigned_encoders_wrap_on_the_wire(twin_factory):
     raw = [m.left % 65536 for m in msgs if m is not None]
     assert max(raw) > 60000 and min(raw) < 10000                   # the register wrapped
     close_pose(pose, (1.0, 0.0, 0.0), 1e-3, 1e-9)
+
+
+def test_cli_odom_drive_moves_the_twin_and_stops_it(twin_factory, capsys, cli_main):
+    import json
+
+    tw = twin_factory(time_scale=2.0)
+    assert cli_main(["odom", "--device", tw.address, "--drive", "5,-5", "--count", "10",
+                     "--json", "--wheel-radius", str(R), "--track", str(B)]) == 0
+    last = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert last["theta"] < -0.05 and abs(last["x"]) < 1e-6     # turning in place, clockwise
+    assert tw._cmd == [0.0, 0.0]                                # stopped at the end
+    assert cli_main(["odom", "--device", tw.address, "--drive", "5"]) == 2
