@@ -36,6 +36,9 @@ def register(subparsers) -> None:
                    help="extra threshold per squared range, 1/m (default: 0 for files, "
                         "0.003 for stereo)")
     p.add_argument("--min-inliers", type=int, default=1000)
+    p.add_argument("--normal-tol", type=float, default=0.0, metavar="DEG",
+                   help="RANSAC: a point supports a plane only if its local normal is within "
+                        "DEG of the plane's (0: off; e.g. 17 for stairs)")
     p.add_argument("--max-planes", type=int, default=10)
     p.add_argument("--max-depth", type=float, default=10.0,
                    help="stereo: drop points farther than this, m")
@@ -99,6 +102,8 @@ def run(args) -> int:
     else:
         cloud = _stereo_points(args.stereo[0], args.stereo[1], args.calib, args.max_depth)
         range_noise = 0.003 if args.range_noise is None else args.range_noise
+    if not 0 <= args.normal_tol < 90:
+        raise UsageError(f"--normal-tol: must be in [0, 90) degrees, got {args.normal_tol}")
     if range_noise < 0:
         raise UsageError(f"--range-noise: must not be negative, got {range_noise}")
     pts = finite_points(cloud)
@@ -106,7 +111,8 @@ def run(args) -> int:
         raise UsageError("input: fewer than 3 finite points")
     t1 = time.perf_counter()
     prm = PlaneParams(threshold=args.threshold, range_noise=range_noise,
-                      min_inliers=args.min_inliers, max_planes=args.max_planes)
+                      min_inliers=args.min_inliers, max_planes=args.max_planes,
+                      normal_tol=np.radians(args.normal_tol))
     planes = detect_planes(pts, args.method, prm, seed=args.seed)
     t2 = time.perf_counter()
     configs = []

@@ -207,6 +207,22 @@ class _VoxelIndex:
         return tri
 
 
+def _local_normals(points: np.ndarray, voxels: _VoxelIndex, idx: np.ndarray,
+                   rng: np.random.Generator, mates: int = 12
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (len(idx), 3) by PCA of random voxel-mates of each point, and a mask of
+    the points that have one (at least 5 mates; the others are not judged)."""
+    a = voxels.start[idx]
+    span = voxels.end[idx] - a
+    j = voxels.order[a[:, None] + (rng.random((len(idx), mates)) * span[:, None]
+                                   ).astype(np.int64)]
+    nb = points[j]
+    nb = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("kmi,kmj->kij", nb, nb)
+    _, vec = np.linalg.eigh(cov)
+    return vec[:, :, 0], span >= 5
+
+
 def _planes_from_triples(points: np.ndarray, tri: np.ndarray, min_area2: float
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (m, 3) and rho (m,) >= 0 of non-degenerate triples."""
@@ -234,6 +250,10 @@ class PlaneParams:
     final_passes: int = 2  # inliers -> largest region -> refit, over every point
     neighbourhood: float = 0.0  # voxel for local triples; 0: auto from the cloud's size
     max_points: int = 100_000  # detect on a regular decimation, then refit on every point
+    # RANSAC only: a sample point supports a hypothesis only if its local normal (PCA of
+    # neighbours) is within this angle (radians); 0 turns the check off. It keeps planes
+    # through the edges of many surfaces (a stair's nosings) from winning.
+    normal_tol: float = 0.0
 
 
 class _Cloud:
@@ -376,6 +396,7 @@ def ransac_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
     """
     prm = params or PlaneParams()
     rng = np.random.default_rng(seed)
+    fine: list[_VoxelIndex] = []
 
     def propose(cl: _Cloud, voxels: _VoxelIndex, min_count: int):
         rem = cl.remaining
@@ -383,6 +404,13 @@ def ransac_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
         pick = rem[rng.choice(len(rem), size=m, replace=False)]
         sample32 = cl.pts[pick].astype(np.float32)
         thr32 = cl.thr[pick].astype(np.float32)[:, None]
+        if prm.normal_tol > 0:
+            if not fine:
+                fine.append(_VoxelIndex(cl.pts, voxels.radius / 3))
+            local_n, known = _local_normals(cl.pts, fine[0], pick, rng)
+            local_n = local_n.astype(np.float32)
+            unknown = ~known[:, None]
+            cos_tol = np.float32(np.cos(prm.normal_tol))
         best, best_score, tried = None, -1, 0
         while tried < max_hypotheses:
             tri = voxels.triples(batch, rng, cl.active, rem)
@@ -395,7 +423,11 @@ def ransac_planes(cloud: np.ndarray, params: PlaneParams | None = None, *,
             dist = np.einsum("ij,kj->ik", sample32, normals.astype(np.float32))
             dist -= rhos.astype(np.float32)
             np.abs(dist, out=dist)
-            counts = (dist < thr32).sum(axis=0, dtype=np.int32)
+            support = dist < thr32
+            if prm.normal_tol > 0:
+                agree = np.abs(np.einsum("ij,kj->ik", local_n, normals.astype(np.float32)))
+                support &= (agree >= cos_tol) | unknown
+            counts = support.sum(axis=0, dtype=np.int32)
             k = int(np.argmax(counts))
             if counts[k] > best_score:
                 best, best_score = (normals[k], float(rhos[k])), int(counts[k])

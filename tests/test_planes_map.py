@@ -150,6 +150,13 @@ def test_stairway_configuration():
     assert s["rise"] == pytest.approx(0.17, abs=0.005)
     assert s["going"] == pytest.approx(0.28, abs=0.02)
     assert abs(np.asarray(s["direction"]) @ [1, 0, 0]) > 0.99
+    # with a wider inlier band, the RANSAC normal check keeps the plane through the nosings
+    # (it has more points within 2 cm than any tread) from winning
+    found, _, _ = _configs(scenes.stairway, PlaneParams(threshold=0.02, min_inliers=200,
+                                                        max_planes=15, normal_tol=0.3),
+                           seed=13)
+    stairs = [c for c in found if c.kind == "stairway"]
+    assert len(stairs) == 1 and stairs[0].params["treads"] == 6
     # irregular rises are not a stairway
     pts, _ = scenes.stairway(seed=13)
     pts = pts.copy()
