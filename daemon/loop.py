@@ -325,8 +325,19 @@ class MappingLoop:
         elif isinstance(msg, PanTiltState):
             self.pantilt.append(msg)
         elif hasattr(msg, "calib") and hasattr(msg, "stamp_ns"):
-            self.on_frame(msg)
+            self._guarded("frame", self.on_frame, msg)
         self.rates[name].append(time.monotonic())
+
+    def _guarded(self, what: str, fn, msg: Any) -> None:
+        """A failing mapping step loses that one message, never the daemon: counted, and
+        logged with its traceback the first time (then every 100th time)."""
+        try:
+            fn(msg)
+        except Exception:  # noqa: BLE001 - the maps so far stay served
+            key = f"errors_{what}"
+            self.counts[key] += 1
+            if self.counts[key] % 100 == 1:
+                log.exception("%s pipeline failed (%d so far)", what, self.counts[key])
 
     def on_odometry(self, stamp_ns: int, pose) -> None:
         self.counts["odometry"] += 1
@@ -347,7 +358,7 @@ class MappingLoop:
             if not ready:
                 break
             self.pending.popleft()
-            self.on_scan(scan)
+            self._guarded("scan", self.on_scan, scan)
             done += 1
         return done
 

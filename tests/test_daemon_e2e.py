@@ -22,8 +22,10 @@ GEOM = {"wheel_radius": 0.05, "track_width": 0.30}
 
 
 def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cgamap.daemon.cli", *args],
-                          capture_output=True, text=True, timeout=timeout)
+    # not `-m cgamap.daemon.cli`: that would load cli twice (two UsageError classes)
+    code = "import sys; from cgamap.daemon.cli import main; sys.exit(main())"
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          timeout=timeout)
 
 
 @pytest.fixture
@@ -84,6 +86,8 @@ def test_end_to_end(stack):
     assert sum(isinstance(m, WheelTicks) for m in msgs) >= 20
 
     # pose error against the simulation's truth (twin clock in every scan)
+    print("pipeline errors:", {k: v for k, v in d.ask("status")["counts"].items()
+                               if k.startswith("errors")})
     err = truth_error(d.ask("trajectory")["rows"], get_world("loop"))
     print("pose error vs truth:", {k: v for k, v in err.items() if not k.startswith("_")})
     assert err["poses"] >= 60

@@ -123,3 +123,14 @@ def test_real_mapper_state_round_trip_and_relocalisation():
     print("relocalize:", res, "tracked:", before)
     if res["ok"]:  # where the module finds a pose it must be where tracking had the robot
         assert np.hypot(*(np.array(res["pose"][:2]) - before[:2])) < 0.3
+
+
+def test_a_failing_step_loses_the_message_not_the_loop():
+    class Broken(FakeMapper):
+        def step(self, scan, odom):
+            raise FloatingPointError("bad scan")
+
+    loop = MappingLoop(cfg(), mapper2d=Broken(0.5), devices={})
+    loop.handle("laser", scan_at(get_world("corridor"), 0.0, 0, 10))
+    loop.process(odometry_live=False)
+    assert loop.counts["errors_scan"] == 1 and loop.counts.get("scans", 0) == 0
