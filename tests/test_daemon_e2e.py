@@ -137,3 +137,47 @@ def test_replay_of_a_recording(stack):
         r.stop()
     finally:
         shutil.rmtree(run, ignore_errors=True)
+
+
+def test_record_without_daemon(tmp_path):
+    """`cgamap record --config` opens the devices itself when no daemon runs."""
+    import yaml
+
+    base = start_twin("modbus-base")
+    try:
+        cfg = {"devices": {"base": {"role": "odometry", "model": "modbus-base",
+                                    "url": base.url, "rate": 50.0}}}
+        (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+        res = cli("record", "--config", str(tmp_path / "c.yaml"), "--duration", "1.5",
+                  str(tmp_path / "b.mcap"))
+        assert res.returncode == 0, res.stderr
+        ticks = [m for m in read_messages(tmp_path / "b.mcap") if isinstance(m, WheelTicks)]
+        assert len(ticks) >= 20 and [t.seq for t in ticks] == sorted(t.seq for t in ticks)
+    finally:
+        base.stop()
+
+
+def test_replay_of_a_real_carmen_log(tmp_path, shared_data):
+    """cgamapd --replay on the first 200 scans of the Intel lab log (real data)."""
+    import gzip
+
+    log = shared_data("laser/intel-corrected.log.gz")
+    part = tmp_path / "intel-200.log"
+    n = 0
+    with gzip.open(log, "rt") as src, open(part, "w") as dst:
+        for line in src:
+            dst.write(line)
+            n += line.startswith("FLASER")
+            if n >= 200:
+                break
+    run = short_dir()
+    try:
+        r = DaemonProc({"checkpoint": {"interval": 30.0}}, tmp_path, run,
+                       extra=["--replay", str(part), "--exit-after-replay"])
+        assert r.proc.wait(120) == 0, r.log_text()
+        ck = r.checkpoint()
+        r.stop()
+        assert ck["reason"] == "shutdown" and ck["loop"]["counts"]["scans"] >= 150
+        assert len(ck["loop"]["map2d"]["map"]["a"]) >= 10
+    finally:
+        shutil.rmtree(run, ignore_errors=True)
