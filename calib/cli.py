@@ -16,10 +16,14 @@ from .handeye import METHODS, DegenerateMotionError
 from .pairs import PairsFileError
 
 
-def _usage_error(msg: str):
-    from cgamap.daemon.cli import UsageError
+class CalibUsageError(Exception):
+    """Bad input to a calib command: the CLI prints it as one line and exits with 2."""
 
-    return UsageError(msg)
+    exit_code = 2
+
+
+def _usage_error(msg: str) -> CalibUsageError:
+    return CalibUsageError(msg)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -29,11 +29,19 @@ COMMAND_MODULES = [
 
 
 class UsageError(Exception):
-    """Raised by a subcommand for bad input: printed as one line, exit code 2 (or .code)."""
+    """Raised by a subcommand for bad input: printed as one line, exit code 2 (or .code).
+
+    ``main`` reports any exception that carries an ``exit_code`` attribute the same way, so
+    lower layers (``calib``) define their own error class instead of importing this one.
+    """
 
     def __init__(self, message: str, code: int = 2):
         super().__init__(message)
         self.code = code
+
+    @property
+    def exit_code(self) -> int:
+        return self.code
 
 
 def package_version() -> str:
@@ -71,11 +79,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except UsageError as exc:
-        print(f"cgamap: {exc}", file=sys.stderr)
-        return exc.code
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        code = getattr(exc, "exit_code", None)
+        if code is None:
+            raise
+        print(f"cgamap: {exc}", file=sys.stderr)
+        return int(code)
 
 
 if __name__ == "__main__":
