@@ -253,15 +253,17 @@ def read_ply(path: str | Path) -> np.ndarray:
         if axis not in names:
             raise CloudFormatError(f"{name}: PLY vertex has no '{axis}' property")
     if fmt == "ascii":
-        rows = raw[body:].decode("ascii", errors="replace").splitlines()
+        rows = raw[body:].split(b"\n", count)[:count]  # the vertex lines; faces may follow
         if len(rows) < count:
             raise CloudFormatError(f"{name}: PLY has {len(rows)} data lines, needs {count}")
         try:
-            table = np.array([r.split()[: len(names)] for r in rows[:count]], dtype=float)
+            table = np.array(b" ".join(rows).split(), dtype=float)
         except ValueError:
             raise CloudFormatError(f"{name}: PLY vertex lines are not numbers") from None
-        if table.shape != (count, len(names)):
-            raise CloudFormatError(f"{name}: PLY vertex lines have too few values")
+        if table.size != count * len(names):
+            raise CloudFormatError(f"{name}: PLY vertex lines hold {table.size} values, "
+                                   f"expected {count} x {len(names)}")
+        table = table.reshape(count, len(names))
         return table[:, [names.index(a) for a in "xyz"]]
     dtype = np.dtype([(p[0], "<" + p[1]) for p in props])
     if len(raw) - body < count * dtype.itemsize:
