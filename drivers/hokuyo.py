@@ -34,11 +34,20 @@ from .scip import (
     parse_fields,
     status_text,
 )
-from .transport import Transport, TransportError
+from .transport import SerialTransport, SpyTransport, Transport, TransportError
 
 log = logging.getLogger(__name__)
 
 ENCODINGS = ("D", "S", "E")   # 3-char ranges, 2-char ranges, ranges + intensities
+# RS-232 rates SCIP's SS command takes (urg_library's list); power-on default 19200
+BAUD_RATES = (19200, 57600, 115200, 250000, 500000, 750000)
+
+
+def _line_baud(tr: Transport) -> int | None:
+    """The serial rate of a transport, or None when it is not a serial line."""
+    while isinstance(tr, SpyTransport):
+        tr = tr.inner
+    return tr.baud if isinstance(tr, SerialTransport) else None
 
 
 class ScipError(DeviceError):
@@ -80,6 +89,8 @@ class HokuyoDriver(LaserDriver):
     ``encoding``: "D" (3-char, any range), "S" (2-char, <= 4095 mm), "E" (with intensities).
     ``start``/``end`` steps default to AMIN/AMAX; ``cluster`` merges that many steps;
     ``skip`` (0-9) skips scans between the ones sent in continuous mode.
+    ``baud``: on an RS-232 line, switch the session to this rate with ``SS`` (after finding
+    the sensor's current rate among :data:`BAUD_RATES` if the URL's rate gets no answer).
     """
 
     model = "hokuyo"
@@ -88,7 +99,7 @@ class HokuyoDriver(LaserDriver):
     def __init__(self, device: str | Transport, timeout: float = 0.5, *,
                  mode: str = "continuous", encoding: str = "D", start: int | None = None,
                  end: int | None = None, cluster: int = 1, skip: int = 0,
-                 command_timeout: float = 0.4, **kw) -> None:
+                 command_timeout: float = 0.4, baud: int | None = None, **kw) -> None:
         super().__init__(device, timeout, **kw)
         if mode not in ("continuous", "single"):
             raise ValueError(f"hokuyo: mode must be 'continuous' or 'single', not {mode!r}")
@@ -96,6 +107,9 @@ class HokuyoDriver(LaserDriver):
             raise ValueError(f"hokuyo: encoding must be one of {ENCODINGS}, not {encoding!r}")
         if not 1 <= cluster <= 99 or not 0 <= skip <= 9:
             raise ValueError("hokuyo: cluster must be 1..99 and skip 0..9")
+        if baud is not None and baud not in BAUD_RATES:
+            raise ValueError(f"hokuyo: baud must be one of {BAUD_RATES}, not {baud}")
+        self.baud = baud
         self.mode, self.encoding = mode, encoding
         self.start, self.end, self.cluster, self.skip = start, end, cluster, skip
         self.command_timeout = command_timeout
@@ -114,7 +128,7 @@ class HokuyoDriver(LaserDriver):
         self.parser.reset()
         self._pending.clear()
         self._streaming = False
-        self._probe()
+        self._connect_line()
         fields: dict[str, str] = {}
         for cmd in ("VV", "PP", "II"):
             reply = self._command(cmd)
@@ -289,6 +303,40 @@ class HokuyoDriver(LaserDriver):
                         return item
         raise DeviceError(f"hokuyo: no reply to {cmd!r} within {wait:g} s ({tries} tries)")
 
+    def _connect_line(self) -> None:
+        """Probe; on a serial line find the sensor's rate if needed, then switch to ``baud``."""
+        tr = self._tr()
+        current = _line_baud(tr)
+        try:
+            self._probe()
+        except DeviceError:
+            if current is None:
+                raise
+            self._detect_baud(current)
+        current = _line_baud(tr)
+        if current is not None and self.baud is not None and current != self.baud:
+            reply = self._command(f"SS{self.baud:06d}")
+            if reply.status not in ("00", "03", "04"):   # 03/04: already at that rate
+                raise ScipError(f"SS{self.baud:06d}", reply.status)
+            tr.set_baud(self.baud)
+            log.info("%s: switched from %d to %d baud", self.url, current, self.baud)
+            self._probe()
+
+    def _detect_baud(self, tried: int) -> None:
+        tr = self._tr()
+        for rate in (r for r in BAUD_RATES if r != tried):
+            tr.set_baud(rate)
+            tr.reset_input()
+            self.parser.reset()
+            try:
+                self._command("QT", tries=1)
+            except DeviceError:
+                continue
+            log.info("%s: sensor answers at %d baud", self.url, rate)
+            self._probe()
+            return
+        raise DeviceError(f"hokuyo: no SCIP answer at any of {BAUD_RATES} baud")
+
     def _probe(self) -> None:
         """``QT`` until a SCIP 2.0 answer, switching from SCIP 1.1 / TM mode on the way."""
         last: Exception | None = None
@@ -324,4 +372,4 @@ class HokuyoDriver(LaserDriver):
         self._streaming = True
 
 
-__all__ = ["CHARS_PER_VALUE", "HokuyoDriver", "ScipError", "scan_to_message"]
+__all__ = ["BAUD_RATES", "CHARS_PER_VALUE", "HokuyoDriver", "ScipError", "scan_to_message"]

@@ -288,6 +288,19 @@ def test_scip11_switch_tm_mode_and_time_sync(tmp_path):
             assert d.read_scan(2.0) is not None
 
 
+def test_rs232_baud_detection_and_switch(tmp_path):
+    # an RS-232 URG-04LX at its power-on 19200 baud; the URL says 115200 (wrong)
+    with HokuyoTwin("URG-04LX", link=str(tmp_path / "tty"), baud=19200, speed=4.0) as tw:
+        d = HokuyoDriver(f"serial://{tw.path}?baud=115200", 0.5, command_timeout=0.3,
+                         baud=500000)
+        with d:
+            assert d.read_scan(2.0) is not None
+            assert "SS500000" in tw.commands and tw.baud == 500000
+            assert tw.dev.host_baud() == 500000
+        with pytest.raises(ValueError, match="baud"):
+            HokuyoDriver(tw.path, baud=12345)
+
+
 def test_ethernet_model_over_tcp_with_unplug():
     with HokuyoTwin("UST-10LX", tcp_port=0, speed=4.0) as tw:
         assert tw.url.startswith("tcp://127.0.0.1:")

@@ -136,7 +136,8 @@ class HokuyoTwin:
                  fault_rate: float = 0.0, seed: int = 0, link: str | None = None,
                  speed: float = 1.0, noise: NoiseModel | None = None,
                  scip1: bool = False, clock0_ms: int = 0, status: str = "00",
-                 epoch: float | None = None, tcp_port: int | None = None) -> None:
+                 epoch: float | None = None, tcp_port: int | None = None,
+                 baud: int | None = None) -> None:
         name = ALIASES.get(model.lower(), model)
         if name not in MODELS:
             raise ValueError(f"unknown Hokuyo model {model!r}; choose from {sorted(MODELS)}")
@@ -163,6 +164,10 @@ class HokuyoTwin:
         self._t0 = time.monotonic() if epoch is None else float(epoch)
         self._truncate = 0
         self._unstable = 0
+        # RS-232 emulation (pty only): the rate the sensor talks at; while the host's port is
+        # set to another, input is lost and output arrives as garbage.  None: USB (any rate).
+        self.power_on_baud = baud
+        self.baud = baud
         self._stall_until = 0.0
         self._inbuf = b""
         self._power_on()
@@ -229,6 +234,7 @@ class HokuyoTwin:
 
     # -- device state ----------------------------------------------------------------------
     def _power_on(self) -> None:
+        self.baud = getattr(self, "power_on_baud", None)
         self._laser = False
         self._tm_mode = False
         self._stream: dict | None = None
@@ -266,7 +272,14 @@ class HokuyoTwin:
             except (PtyClosed, OSError):
                 time.sleep(0.005)   # disconnected under our feet; wait for reconnect()
 
+    def _rate_mismatch(self) -> bool:
+        return (self.baud is not None and isinstance(self.dev, PtyDevice)
+                and self.dev.host_baud() != self.baud)
+
     def _on_input(self, data: bytes) -> None:
+        if self._rate_mismatch():            # framing errors at the wrong rate: nothing usable
+            self._inbuf = b""
+            return
         self._inbuf += data
         *lines, self._inbuf = self._inbuf.replace(b"\r", b"\n").split(b"\n")
         if len(self._inbuf) > 256:            # no terminator in sight: drop it
@@ -278,6 +291,9 @@ class HokuyoTwin:
     def _send(self, data: bytes, scan: SentScan | None = None, cut: bool = False) -> None:
         """Write with byte errors (and an optional cut) applied; record scans."""
         intact, orig = True, data
+        if self._rate_mismatch():
+            data = self.fault_rng.bytes(len(data))
+            intact = False
         if cut and len(data) > 30:
             data = data[: int(self.fault_rng.integers(20, len(data) - 2))]
             intact = False
@@ -344,7 +360,15 @@ class HokuyoTwin:
         elif cmd.startswith("TM") and len(cmd) == 3:
             self._time_command(line, cmd[2])
         elif cmd.startswith("SS") and len(cmd) == 8 and cmd[2:].isdigit():
-            self._reply(line, "00")           # a pty passes any rate
+            rate = int(cmd[2:])
+            if rate not in (19200, 38400, 57600, 115200, 250000, 500000, 750000):
+                self._reply(line, "01")
+            elif self.baud is not None and rate == self.baud:
+                self._reply(line, "03")       # already at that rate
+            else:
+                self._reply(line, "00")       # answered at the old rate, then switch
+                if self.baud is not None:
+                    self.baud = rate
         elif cmd[:1] in ("G", "M") and cmd[1:2] in ("D", "S", "E"):
             self._scan_command(line, cmd)
         else:
