@@ -69,6 +69,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         p = sub.add_parser("relocalize", help="ask the daemon to relocalise the robot")
         _add_socket(p)
         p.set_defaults(func=relocalize_via_daemon)
+    else:  # cmd_mapping's offline relocalize: give it the socket for its daemon mode
+        p = sub.choices["relocalize"]
+        if not any("--socket" in a.option_strings for a in p._actions):  # noqa: SLF001
+            _add_socket(p)
 
     p = sub.add_parser("set-pose", help="tell the daemon where the robot is (x y theta_deg)")
     _add_socket(p)

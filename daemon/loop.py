@@ -321,6 +321,8 @@ class MappingLoop:
                 # than interpolating, and the log's separate ODOM lines are then ignored
                 self.scan_odometry = True
                 self.on_odometry(msg.stamp_ns, msg.pose_odom)
+            if len(self.pending) == self.pending.maxlen:
+                self.counts["scans_dropped"] += 1  # the oldest waiting scan goes
             self.pending.append(msg)
         elif isinstance(msg, PanTiltState):
             self.pantilt.append(msg)

@@ -103,3 +103,30 @@ def test_sighup_reloads_what_is_safe(daemon):
     assert d.ask("status")["checkpoint"]["interval_s"] == 7.5
     assert "reload" in d.log_text() and d.proc.poll() is None
     assert d.terminate()[0] == 0
+
+
+def test_cli_without_daemon_is_one_clear_line(tmp_path):
+    import subprocess
+    import sys
+
+    code = "import sys; from cgamap.daemon.cli import main; sys.exit(main())"
+    for args in (["status"], ["map", "export", "--format", "json"], ["watch", "--count", "1"]):
+        out = subprocess.run([sys.executable, "-c", code, *args, "--socket",
+                              str(tmp_path / "none.sock")], capture_output=True, text=True,
+                             timeout=60)
+        assert out.returncode == 69, out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1 and "cannot connect" in out.stderr
+
+
+def test_cli_watch_lines(daemon):
+    import subprocess
+    import sys
+
+    d = daemon({})
+    code = "import sys; from cgamap.daemon.cli import main; sys.exit(main())"
+    out = subprocess.run([sys.executable, "-c", code, "watch", "--socket", str(d.socket),
+                          "--count", "2", "--interval", "0.1"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    lines = [json.loads(x) for x in out.stdout.splitlines()]
+    assert [x["class"] for x in lines] == ["watch", "status"]
