@@ -62,6 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--pan-limits", default=None, metavar="MIN,MAX", help="rad")
     q.add_argument("--tilt-limits", default=None, metavar="MIN,MAX", help="rad")
     q.add_argument("--velocity", type=float, default=None, help="profile velocity, rad/s")
+    q.add_argument("--protocol", type=float, default=2.0, choices=(1.0, 2.0),
+                   help="Dynamixel protocol: 2.0 (X-series, default) or 1.0 (AX, MX)")
     acts = q.add_subparsers(dest="action", metavar="ACTION", required=True)
     hidden_json = {"action": "store_true", "default": argparse.SUPPRESS, "help": "JSON output"}
     a = acts.add_parser("status", help="present angles and hardware error status")
@@ -150,7 +152,7 @@ def run_pantilt(args: argparse.Namespace) -> int:
     )
 
     pan_id, tilt_id = _pair(args.ids, "--ids", int)
-    cfg = PanTiltConfig(url=args.device).with_ids(pan_id, tilt_id)
+    cfg = PanTiltConfig(url=args.device, protocol=args.protocol).with_ids(pan_id, tilt_id)
     if args.pan_limits:
         lo, hi = _pair(args.pan_limits, "--pan-limits")
         cfg = replace(cfg, pan=replace(cfg.pan, min_rad=lo, max_rad=hi))

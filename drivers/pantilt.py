@@ -1,20 +1,23 @@
-"""Pan-tilt head of two Dynamixel X-series servos (Protocol 2.0) through dynamixel-sdk.
+"""Pan-tilt head of two Dynamixel X-series servos (Protocol 2.0) through dynamixel-sdk; AX
+and MX servos in Protocol 1.0 with ``protocol: 1.0`` (no SYNC_READ there: one READ per servo,
+alarms from the status error byte, no REBOOT).
 
-Joint angles are radians with 0 at position 2048 (the middle of the 0..4095 turn) unless a
-joint's ``zero`` says otherwise.  Axes (DESIGN.md camera chain, seed eqs. 17-22): **pan** turns
-the head about the base's +z axis (positive = counter-clockwise seen from above, the camera looks
-left); **tilt** turns the head about the pan-turned head's +y axis (y left; positive = right-handed
-about +y, so the camera's forward axis dips: positive tilt looks *down*).  :meth:`PanTilt.rotors`
-gives ``R_pan = rotor(e_z, pan)`` and ``R_tilt = rotor(e_y, tilt)``, to be used as
-``R_pt = R_pos R_pan R_tilt``.  ``sign: -1`` in a joint's config flips a servo mounted the other
-way round.
+Joint angles are radians with 0 at the model's centre position (2048 of 0..4095 for X and MX,
+512 of 0..1023 over 300° for AX) unless a joint's ``zero`` says otherwise.  Axes (DESIGN.md
+camera chain, seed eqs. 17-22): **pan** turns the head about the base's +z axis (positive =
+counter-clockwise seen from above, the camera looks left); **tilt** turns the head about the
+pan-turned head's +y axis (y left; positive = right-handed about +y, so the camera's forward
+axis dips: positive tilt looks *down*).  :meth:`PanTilt.rotors` gives ``R_pan = rotor(e_z,
+pan)`` and ``R_tilt = rotor(e_y, tilt)``, to be used as ``R_pt = R_pos R_pan R_tilt``.
+``sign: -1`` in a joint's config flips a servo mounted the other way round.
 
 Start-up: open the port, ping both IDs and check the model numbers against the accepted list,
 set the profile velocity.  ``move`` refuses (raises :class:`PanTiltLimitError`) a goal outside a
 joint's limits before anything is sent; goals go out in one SYNC_WRITE.  ``read_state`` does a
 SYNC_READ of Moving..Present Position (addresses 122-135) and of Hardware Error Status (70).
 ``PanTiltState.hardware_error`` packs the pan servo's status in bits 0-7 and the tilt servo's in
-bits 8-15 (bit 2 overheating, 3 encoder, 4 electrical shock, 5 overload, 0 input voltage).
+bits 8-15 (bit 2 overheating, 3 encoder, 4 electrical shock, 5 overload, 0 input voltage;
+Protocol 1.0 alarms use the same bit positions for voltage, overheating and overload).
 
 dynamixel-sdk workarounds, all in :class:`_Port` and :meth:`PanTilt._txrx` (devices.md §1.7):
 the port is opened with a 2 ms read timeout instead of ``timeout=0`` (the SDK's receive loop
@@ -46,17 +49,53 @@ log = logging.getLogger(__name__)
 # a vanished port (USB unplug, twin closed the pty) shows as any of these
 _PORT_ERRORS = (OSError, serial.SerialException, termios.error)
 
-ADDR_TORQUE, ADDR_HW_ERROR, ADDR_PROFILE_VEL, ADDR_GOAL_POS = 64, 70, 112, 116
-ADDR_STATE, STATE_LEN = 122, 14            # Moving(122) .. Present Position(132..135)
-POS_PER_RAD = 4096.0 / (2.0 * math.pi)
-VEL_UNIT = 0.229 * 2.0 * math.pi / 60.0    # rad/s per velocity unit (0.229 rev/min)
 HW_ERROR_BITS = {0: "input voltage", 2: "overheating", 3: "motor encoder",
                  4: "electrical shock", 5: "overload"}
-# X-series model numbers (ROBOTIS e-manual); extend with ``models`` in the config.
+_RPM = 2.0 * math.pi / 60.0
+
+
+@dataclass(frozen=True)
+class ServoTable:
+    """Where a servo family keeps what the head needs, and its units."""
+
+    family: str
+    protocol: float
+    torque: int                # Torque Enable (1 byte)
+    goal: int                  # Goal Position
+    goal_size: int
+    speed: int                 # Profile Velocity (X) / Moving Speed (AX, MX 1.0)
+    speed_size: int
+    state: int                 # one read covering the moving flag and the present position
+    state_len: int
+    pos_off: int               # present position within that read
+    pos_size: int
+    moving_off: int
+    hw_error: int | None       # Hardware Error Status address; None: status error byte only
+    pos_per_rad: float
+    center: int                # position at angle 0
+    vel_unit: float            # rad/s per speed unit
+    speed_max: int
+
+
+X_SERIES = ServoTable("X-series", 2.0, 64, 116, 4, 112, 4, 122, 14, 10, 4, 0, 70,
+                      4096.0 / (2.0 * math.pi), 2048, 0.229 * _RPM, 32767)
+AX_SERIES = ServoTable("AX", 1.0, 24, 30, 2, 32, 2, 36, 11, 0, 2, 10, None,
+                       1023.0 / math.radians(300.0), 512, 0.111 * _RPM, 1023)
+MX_SERIES_P1 = ServoTable("MX (Protocol 1.0)", 1.0, 24, 30, 2, 32, 2, 36, 11, 0, 2, 10, None,
+                          4096.0 / (2.0 * math.pi), 2048, 0.114 * _RPM, 1023)
+# Model numbers (ROBOTIS e-manual) and their tables; extend ``models`` in the config to accept
+# only some of them.
 KNOWN_MODELS = {1000: "XH430-W210", 1010: "XH430-W350", 1020: "XM430-W350",
                 1030: "XM430-W210", 1060: "XL430-W250", 1070: "XC430-W150",
                 1080: "XC430-W240", 1090: "2XL430-W250", 1120: "XM540-W270",
-                1130: "XM540-W150", 1190: "XL330-M077", 1200: "XL330-M288"}
+                1130: "XM540-W150", 1190: "XL330-M077", 1200: "XL330-M288",
+                12: "AX-12A", 18: "AX-18A", 300: "AX-12W",
+                29: "MX-28", 310: "MX-64", 320: "MX-106"}
+MODEL_TABLES = {m: (AX_SERIES if m in (12, 18, 300) else MX_SERIES_P1 if m in (29, 310, 320)
+                    else X_SERIES) for m in KNOWN_MODELS}
+# Protocol 1.0 status error bits that are hardware alarms (same bit positions as 2.0's
+# Hardware Error Status: 0 input voltage, 2 overheating, 5 overload).
+_P1_HW_BITS = 0x25
 
 
 class PanTiltError(Exception):
@@ -76,20 +115,23 @@ class JointConfig:
     dxl_id: int
     min_rad: float
     max_rad: float
-    zero: int = 2048          # servo position at angle 0
+    zero: int | None = None   # servo position at angle 0 (None: the model's centre)
     sign: int = 1             # -1: servo mounted reversed
 
-    def to_units(self, rad: float) -> int:
-        return round(self.zero + self.sign * rad * POS_PER_RAD)
+    def to_units(self, rad: float, table: ServoTable = X_SERIES) -> int:
+        zero = table.center if self.zero is None else self.zero
+        return round(zero + self.sign * rad * table.pos_per_rad)
 
-    def to_rad(self, units: int) -> float:
-        return self.sign * (units - self.zero) / POS_PER_RAD
+    def to_rad(self, units: int, table: ServoTable = X_SERIES) -> float:
+        zero = table.center if self.zero is None else self.zero
+        return self.sign * (units - zero) / table.pos_per_rad
 
 
 @dataclass
 class PanTiltConfig:
     url: str = "/dev/ttyUSB0"
     baudrate: int | None = None            # None: from the URL (baudrate=), else 57600
+    protocol: float = 2.0                  # 2.0: X-series; 1.0: AX / MX (Protocol 1.0)
     pan: JointConfig = field(default_factory=lambda: JointConfig(1, -2.6, 2.6))
     tilt: JointConfig = field(default_factory=lambda: JointConfig(2, -1.0, 1.0))
     models: tuple[int, ...] = tuple(KNOWN_MODELS)
@@ -182,6 +224,7 @@ class PanTilt:
         self.config = config
         self.errors = ErrorCounters()
         self.models: dict[int, int] = {}
+        self.tables: dict[int, ServoTable] = {}
         self.last_hw_error: dict[int, int] = {}
         self._port = None
         self._ph = None
@@ -259,7 +302,9 @@ class PanTilt:
             self._port.openPort()
         except (OSError, serial.SerialException) as exc:
             raise PanTiltError(f"{self.config.url}: cannot open: {exc}") from exc
-        self._ph = PacketHandler(2.0)
+        if self.config.protocol not in (1.0, 2.0):
+            raise PanTiltError(f"{self.config.url}: protocol {self.config.protocol}: 1.0 or 2.0")
+        self._ph = PacketHandler(self.config.protocol)
         try:
             for joint, name in ((self.config.pan, "pan"), (self.config.tilt, "tilt")):
                 model = None
@@ -270,10 +315,14 @@ class PanTilt:
                 if model is None:
                     raise PanTiltError(f"{self.config.url}: {name} servo id {joint.dxl_id} "
                                        "does not answer ping")
-                if model not in self.config.models:
+                table = MODEL_TABLES.get(model)
+                if model not in self.config.models or table is None \
+                        or table.protocol != self.config.protocol:
                     raise PanTiltError(f"{self.config.url}: {name} servo id {joint.dxl_id} is "
-                                       f"model {model}, not an accepted X-series model")
+                                       f"model {model}, not an accepted Protocol "
+                                       f"{self.config.protocol} model")
                 self.models[joint.dxl_id] = model
+                self.tables[joint.dxl_id] = table
             self.set_profile_velocity(self.config.profile_velocity)
         except PanTiltError:
             self.close()
@@ -305,24 +354,32 @@ class PanTilt:
             gsw.addParam(dxl_id, list((int(v) & ((1 << 8 * size) - 1)).to_bytes(size, "little")))
         return self._txrx(what, gsw.txPacket) is not None
 
-    def _write_each(self, what: str, addr: int, size: int, values: dict[int, int]) -> bool:
-        """Acknowledged writes (one per servo), so refusals (status errors) are seen."""
-        fn = {1: "write1ByteTxRx", 2: "write2ByteTxRx", 4: "write4ByteTxRx"}[size]
+    def _write_each(self, what: str, addr: int | Callable[[ServoTable], tuple[int, int]],
+                    size: int, values: dict[int, int]) -> bool:
+        """Acknowledged writes (one per servo), so refusals (status errors) are seen.
+        ``addr`` may be a function of the servo's table giving (address, size)."""
         ok = True
         for dxl_id, v in values.items():
-            out = self._txrx(what, lambda i=dxl_id, v=v: getattr(self._ph, fn)(
-                self._port, i, addr, int(v) & ((1 << 8 * size) - 1)), dxl_id)
+            a, n = addr(self.tables[dxl_id]) if callable(addr) else (addr, size)
+            fn = {1: "write1ByteTxRx", 2: "write2ByteTxRx", 4: "write4ByteTxRx"}[n]
+            out = self._txrx(what, lambda i=dxl_id, v=v, a=a, n=n, fn=fn: getattr(self._ph, fn)(
+                self._port, i, a, int(v) & ((1 << 8 * n) - 1)), dxl_id)
             ok = ok and out is not None and out[-1] == 0
         return ok
 
     def torque(self, on: bool) -> bool:
         """Torque on or off for both servos; False if a servo refused (e.g. in shutdown)."""
-        return self._write_each("torque", ADDR_TORQUE, 1, {i: int(on) for i in self.ids})
+        return self._write_each("torque", lambda t: (t.torque, 1), 1,
+                                {i: int(on) for i in self.ids})
 
     def set_profile_velocity(self, rad_s: float) -> bool:
-        units = 0 if rad_s <= 0 else max(1, round(rad_s / VEL_UNIT))
-        return self._write_each("profile velocity", ADDR_PROFILE_VEL, 4,
-                                {i: units for i in self.ids})
+        """Profile velocity (X) or moving speed (AX/MX), rad/s; 0: the servo's maximum."""
+        values = {}
+        for i in self.ids:
+            t = self.tables[i]
+            values[i] = 0 if rad_s <= 0 else min(t.speed_max, max(1, round(rad_s / t.vel_unit)))
+        return self._write_each("profile velocity", lambda t: (t.speed, t.speed_size), 0,
+                                values)
 
     def check_goal(self, pan: float, tilt: float) -> None:
         """Raise PanTiltLimitError unless both angles are finite and within the limits."""
@@ -334,12 +391,19 @@ class PanTilt:
     def move(self, pan: float, tilt: float) -> bool:
         """Send goal angles (rad) in one SYNC_WRITE; limits checked first (nothing sent if out)."""
         self.check_goal(pan, tilt)
-        return self._sync_write("goal position", ADDR_GOAL_POS, 4,
-                                {self.config.pan.dxl_id: self.config.pan.to_units(pan),
-                                 self.config.tilt.dxl_id: self.config.tilt.to_units(tilt)})
+        self._check_open("goal position")
+        pan_j, tilt_j = self.config.pan, self.config.tilt
+        tp, tt = self.tables[pan_j.dxl_id], self.tables[tilt_j.dxl_id]
+        goals = {pan_j.dxl_id: pan_j.to_units(pan, tp), tilt_j.dxl_id: tilt_j.to_units(tilt, tt)}
+        if (tp.goal, tp.goal_size) == (tt.goal, tt.goal_size):
+            return self._sync_write("goal position", tp.goal, tp.goal_size, goals)
+        return self._write_each("goal position", lambda t: (t.goal, t.goal_size), 0, goals)
 
     def reboot(self) -> bool:
-        """REBOOT both servos (clears a hardware error; torque comes back off)."""
+        """REBOOT both servos (clears a hardware error; torque comes back off).  Protocol 2.0
+        only: a Protocol 1.0 servo leaves shutdown when its cause is gone."""
+        if self.config.protocol != 2.0:
+            raise PanTiltError(f"{self.config.url}: reboot needs Protocol 2.0")
         ok = True
         for i in self.ids:
             ok = self._txrx("reboot", lambda i=i: self._ph.reboot(self._port, i), i) is not None \
@@ -359,29 +423,54 @@ class PanTilt:
             return None
         return {i: bytes(gsr.data_dict[i]) for i in self.ids}
 
+    def _read_each(self, what: str) -> dict[int, bytes] | None:
+        """Protocol 1.0 has no SYNC_READ: one READ per servo; alarms come in its error byte."""
+        self._check_open(what)
+        data = {}
+        for i in self.ids:
+            t = self.tables[i]
+            out = self._txrx(what, lambda i=i, t=t: self._ph.readTxRx(
+                self._port, i, t.state, t.state_len), i)
+            if out is None:
+                return None
+            data[i] = bytes(out[0])
+            self.last_hw_error[i] = out[-1] & _P1_HW_BITS
+        return data
+
     def read_state(self) -> PanTiltState | None:
         """Present angles, moving flag and hardware error status; None after a counted error."""
-        data = self._sync_read("present position", ADDR_STATE, STATE_LEN)
-        if data is None:
-            return None
-        stamp = time.monotonic_ns()
-        hw = self._sync_read("hardware error status", ADDR_HW_ERROR, 1)
-        if hw is not None:
-            for i in self.ids:
-                self.last_hw_error[i] = hw[i][0]
-            if any(hw[i][0] for i in self.ids):
-                self.errors.device += 1
         pan_id, tilt_id = self.ids
+        tp, tt = self.tables.get(pan_id, X_SERIES), self.tables.get(tilt_id, X_SERIES)
+        if tp.protocol == 2.0 and tp == tt:
+            data = self._sync_read("present position", tp.state, tp.state_len)
+            if data is None:
+                return None
+            stamp = time.monotonic_ns()
+            hw = self._sync_read("hardware error status", tp.hw_error, 1)
+            if hw is not None:
+                for i in self.ids:
+                    self.last_hw_error[i] = hw[i][0]
+                if any(hw[i][0] for i in self.ids):
+                    self.errors.device += 1
+        else:
+            data = self._read_each("present position")
+            if data is None:
+                return None
+            stamp = time.monotonic_ns()
 
-        def pos(i: int) -> int:
-            return int.from_bytes(data[i][10:14], "little", signed=True)
+        def angle(joint: JointConfig) -> float:
+            t = self.tables.get(joint.dxl_id, X_SERIES)
+            raw = data[joint.dxl_id][t.pos_off:t.pos_off + t.pos_size]
+            return joint.to_rad(int.from_bytes(raw, "little", signed=t.pos_size == 4), t)
+
+        def moving(i: int) -> bool:
+            return bool(data[i][self.tables.get(i, X_SERIES).moving_off])
 
         packed = self.last_hw_error.get(pan_id, 0) | self.last_hw_error.get(tilt_id, 0) << 8
         self._seq += 1
-        return PanTiltState(seq=self._seq, stamp_ns=stamp,
-                            pan=self.config.pan.to_rad(pos(pan_id)),
-                            tilt=self.config.tilt.to_rad(pos(tilt_id)),
-                            moving=bool(data[pan_id][0] or data[tilt_id][0]),
+        return PanTiltState(seq=self._seq, stamp_ns=stamp, pan=angle(self.config.pan),
+                            tilt=angle(self.config.tilt),
+                            moving=moving(pan_id) or moving(tilt_id),
                             hardware_error=packed, errors=self.errors.as_dict())
 
     def poll(self, rate_hz: float = 20.0, count: int | None = None,

@@ -341,3 +341,62 @@ def test_commands_before_open_are_refused():
         h.read_state()
     with pytest.raises(PanTiltError, match="cannot open"):
         h.open()
+
+
+# -- Protocol 1.0 (AX-12) ---------------------------------------------------------------------
+
+def test_protocol1_packets():
+    from cgamap.drivers.sim.dynamixel import build_packet1, parse_packets1
+
+    # e-manual example: READ ID 1, address 43 (temperature), 1 byte
+    assert build_packet1(1, 0x02, bytes([0x2B, 0x01])).hex(" ") == "ff ff 01 04 02 2b 01 cc"
+    buf = bytearray(b"\xff" + build_packet1(1, 0x02, bytes([0x2B, 0x01])) + b"\xff\xff\x01")
+    assert parse_packets1(buf) == [(1, 0x02, bytes([0x2B, 0x01]), True)]
+    assert bytes(buf) == b"\xff\xff\x01"
+
+
+@pytest.fixture
+def twin_p1():
+    tw = DynamixelBusTwin(protocol=1.0)
+    tw.start()
+    yield tw
+    tw.stop()
+
+
+def test_protocol1_head_moves_and_reports(twin_p1):
+    cfg = PanTiltConfig(url=twin_p1.path, protocol=1.0, profile_velocity=4.0)
+    with PanTilt(cfg) as h:
+        assert h.models == {1: 12, 2: 12} and h.tables[1].family == "AX"
+        assert h.torque(True)
+        n = twin_p1.packets_in
+        with pytest.raises(PanTiltLimitError):
+            h.move(0.0, 1.2)
+        assert twin_p1.packets_in == n
+        assert h.move(0.8, -0.5)
+        st = h.wait_until_reached(0.8, -0.5, tol=0.006)   # AX resolution: 0.29° = 5 mrad
+        assert st is not None, h.read_state()
+        assert twin_p1.angle(1) == pytest.approx(0.8, abs=0.006)
+        twin_p1.set_fault("corrupt_crc")
+        assert h.read_state() is None and h.errors.checksum == 1
+        twin_p1.set_fault("hardware_error", ids=[1])
+        st = h.read_state()
+        assert st.hardware_error == 0x04 and h.errors.device >= 1
+        assert not h.torque(True)
+        with pytest.raises(PanTiltError, match="Protocol 2.0"):
+            h.reboot()
+        twin_p1.set_fault(None)
+        assert h.torque(True) and h.read_state().hardware_error == 0
+
+
+def test_protocol_mismatch_is_a_clear_error(twin_p1):
+    with pytest.raises(PanTiltError, match="does not answer"):
+        PanTilt(PanTiltConfig(url=twin_p1.path, protocol=2.0, max_timeouts=10)).open()
+
+
+def test_cli_pantilt_protocol1(twin_p1, capsys, cli_main):
+    import json
+
+    assert cli_main(["pantilt", "--device", twin_p1.path, "--protocol", "1", "move", "-0.3",
+                     "0.2", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["pan"] == pytest.approx(-0.3, abs=0.006) and out["models"] == {"1": 12, "2": 12}

@@ -1,4 +1,5 @@
-"""Twin of a Dynamixel bus: X-series servos (Protocol 2.0) answering on one pty.
+"""Twin of a Dynamixel bus: X-series servos (Protocol 2.0), or AX-12 servos (Protocol 1.0,
+``protocol=1.0``), answering on one pty.
 
 Speaks the real wire format (``devices.md`` §1.3-1.5): header ``FF FF FD 00``, ID, length,
 instruction, byte-stuffed parameters, CRC-16 (poly 0x8005).  Served instructions: PING
@@ -124,6 +125,46 @@ def parse_packets(buf: bytearray) -> list[tuple[int, int, bytes, bool]]:
         out.append((pkt[4], body[0], body[1:], ok))
 
 
+# -- protocol 1.0 framing (AX / MX servos) ------------------------------------------------------
+
+def checksum1(body: bytes) -> int:
+    """Protocol 1.0 checksum: ~(ID + LEN + INST/ERR + params) & 0xFF."""
+    return ~sum(body) & 0xFF
+
+
+def build_packet1(dxl_id: int, instruction: int, params: bytes = b"") -> bytes:
+    """FF FF ID LEN INST PARAMS CHK (LEN = params + 2); also status packets (INST = error)."""
+    body = bytes([dxl_id, len(params) + 2, instruction]) + bytes(params)
+    return b"\xff\xff" + body + bytes([checksum1(body)])
+
+
+def parse_packets1(buf: bytearray) -> list[tuple[int, int, bytes, bool]]:
+    """Complete Protocol 1.0 packets off the front of ``buf``: (id, inst, params, chk_ok)."""
+    out = []
+    while True:
+        start = buf.find(b"\xff\xff")
+        if start < 0:
+            del buf[:max(0, len(buf) - 1)]
+            return out
+        del buf[:start]
+        if len(buf) >= 3 and buf[2] == 0xFF:     # FF FF FF: the first FF was noise
+            del buf[:1]
+            continue
+        if len(buf) < 4:
+            return out
+        length = buf[3]
+        if length < 2:
+            del buf[:1]
+            continue
+        total = 4 + length
+        if len(buf) < total:
+            return out
+        pkt = bytes(buf[:total])
+        del buf[:total]
+        ok = checksum1(pkt[2:-1]) == pkt[-1]
+        out.append((pkt[2], pkt[4], pkt[5:-1], ok))
+
+
 # -- the servos -------------------------------------------------------------------------------
 
 ADDR_MODEL, ADDR_FIRMWARE, ADDR_ID, ADDR_OPMODE = 0, 6, 7, 11
@@ -161,6 +202,14 @@ class ServoSim:
 
     def put(self, addr: int, size: int, value: int) -> None:
         self.table[addr:addr + size] = (int(value) & ((1 << 8 * size) - 1)).to_bytes(size, "little")
+
+    def angle(self) -> float:
+        return (self.position - 2048.0) / POS_PER_RAD
+
+    def set_hw_error(self, bits: int) -> None:
+        self.table[ADDR_HW_ERROR] = bits
+        if bits:
+            self.table[ADDR_TORQUE] = 0
 
     def get(self, addr: int, size: int, signed: bool = False) -> int:
         return int.from_bytes(self.table[addr:addr + size], "little", signed=signed)
@@ -202,15 +251,84 @@ class ServoSim:
         return 0
 
 
+# AX-12 control table (Protocol 1.0); MX servos in Protocol 1.0 use the same addresses.
+AX_TORQUE, AX_GOAL, AX_SPEED, AX_PRESENT, AX_MOVING = 24, 30, 32, 36, 46
+AX_CW_LIMIT, AX_CCW_LIMIT = 6, 8
+AX_POS_PER_RAD = 1023.0 / math.radians(300.0)
+AX_VEL_UNIT = 0.111 * 2.0 * math.pi / 60.0   # rad/s per moving-speed unit; 0 = maximum
+ERR1_ANGLE, ERR1_CHECKSUM, ERR1_INSTRUCTION = 0x02, 0x10, 0x40
+
+
+@dataclass
+class AxServoSim:
+    """One AX-12 servo (Protocol 1.0): 0..1023 over 300°, centre 512."""
+
+    dxl_id: int
+    model: int = 12
+    position: float = 512.0
+    hw_error: int = 0          # Protocol 1.0 status error bits 0 (voltage), 2 (heat), 5 (load)
+    table: bytearray = field(default_factory=lambda: bytearray(64))
+
+    def __post_init__(self) -> None:
+        self.put(0, 2, self.model)
+        self.put(2, 1, 24)                 # firmware
+        self.put(3, 1, self.dxl_id)
+        self.put(4, 1, 34)                 # 57600 baud
+        self.put(AX_CW_LIMIT, 2, 0)
+        self.put(AX_CCW_LIMIT, 2, 1023)
+        self.put(34, 2, 1023)              # torque limit
+        self.put(AX_GOAL, 2, round(self.position))
+        self.put(AX_PRESENT, 2, round(self.position))
+        self.put(42, 1, 120)               # 12.0 V
+        self.put(43, 1, 35)
+
+    put = ServoSim.put
+    get = ServoSim.get
+
+    def angle(self) -> float:
+        return (self.position - 512.0) / AX_POS_PER_RAD
+
+    def set_hw_error(self, bits: int) -> None:
+        self.hw_error = bits
+        if bits:
+            self.table[AX_TORQUE] = 0
+
+    def advance(self, dt: float) -> None:
+        torque = self.table[AX_TORQUE] == 1
+        goal = self.get(AX_GOAL, 2)
+        if torque and dt > 0:
+            units = self.get(AX_SPEED, 2) or 1023
+            step = units * AX_VEL_UNIT * AX_POS_PER_RAD * dt
+            self.position += max(-step, min(step, goal - self.position))
+        self.put(AX_PRESENT, 2, round(self.position))
+        self.table[AX_MOVING] = int(torque and abs(goal - self.position) > 1)
+
+    def write(self, addr: int, data: bytes) -> int:
+        if addr + len(data) > len(self.table):
+            return ERR1_INSTRUCTION
+        if addr <= AX_TORQUE < addr + len(data) and self.hw_error and data[AX_TORQUE - addr]:
+            return self.hw_error                 # in shutdown until the fault ends
+        if addr <= AX_GOAL and AX_GOAL + 2 <= addr + len(data):
+            goal = int.from_bytes(data[AX_GOAL - addr:AX_GOAL - addr + 2], "little")
+            if not self.get(AX_CW_LIMIT, 2) <= goal <= self.get(AX_CCW_LIMIT, 2):
+                return ERR1_ANGLE
+        self.table[addr:addr + len(data)] = data
+        return 0
+
+
 class DynamixelBusTwin:
     """Servos on one pty bus; ``start()`` returns the path to give the SDK's PortHandler."""
 
     def __init__(self, models: dict[int, int] | None = None, fault_rate: float = 0.0,
-                 seed: int = 0) -> None:
-        models = models or {1: 1020, 2: 1060}
+                 seed: int = 0, protocol: float = 2.0) -> None:
+        if protocol not in (1.0, 2.0):
+            raise ValueError(f"dynamixel twin: protocol {protocol}: 1.0 or 2.0")
+        self.protocol = protocol
+        models = models or ({1: 1020, 2: 1060} if protocol == 2.0 else {1: 12, 2: 12})
         self.fault_rate = float(fault_rate)   # probability per sent byte of a flipped byte
         self._rng = random.Random(seed)
-        self.servos = {i: ServoSim(i, m) for i, m in models.items()}
+        servo_cls = ServoSim if protocol == 2.0 else AxServoSim
+        self.servos = {i: servo_cls(i, m) for i, m in models.items()}
         self.fault: str | None = None
         self.fault_ids: set[int] | None = None
         self.delay_s = 0.3
@@ -237,16 +355,15 @@ class DynamixelBusTwin:
             for s in self.servos.values():
                 hit = self.fault_ids is None or s.dxl_id in self.fault_ids
                 if kind == "hardware_error" and hit:
-                    s.table[ADDR_HW_ERROR] = 0x04       # overheating
-                    s.table[ADDR_TORQUE] = 0
+                    s.set_hw_error(0x04)                # overheating; torque drops
                 elif kind is None:
-                    s.table[ADDR_HW_ERROR] = 0
+                    s.set_hw_error(0)
 
     def angle(self, dxl_id: int) -> float:
-        """Present angle (rad) of a servo, 2048 = 0."""
+        """Present angle (rad) of a servo (0 at the centre position)."""
         with self._lock:
             self._advance()
-            return (self.servos[dxl_id].position - 2048.0) / POS_PER_RAD
+            return self.servos[dxl_id].angle()
 
     def _advance(self) -> None:
         now = time.monotonic()
@@ -314,19 +431,57 @@ class DynamixelBusTwin:
                 self._reply(out, dxl_id, ERR_INSTRUCTION)
         return out
 
+    def handle1(self, dxl_id: int, inst: int, params: bytes,
+                ok: bool) -> list[tuple[int, bytes]]:
+        """Protocol 1.0: PING, READ, WRITE, SYNC_WRITE (AX-12 table)."""
+        out: list[tuple[int, bytes]] = []
+        self._advance()
+
+        def reply(i: int, err: int, data: bytes = b"") -> None:
+            out.append((i, build_packet1(i, err | self.servos[i].hw_error, data)))
+
+        if dxl_id == BROADCAST_ID and inst == INST_SYNC_WRITE and ok and len(params) >= 2:
+            addr, n = params[0], params[1]
+            rest = params[2:]
+            for k in range(0, len(rest) - n, n + 1):
+                i = rest[k]
+                if i in self.servos and not self._faulty(i, "no_reply"):
+                    self.servos[i].write(addr, rest[k + 1:k + 1 + n])
+            return out
+        if dxl_id not in self.servos:
+            return out
+        s = self.servos[dxl_id]
+        if not ok:
+            reply(dxl_id, ERR1_CHECKSUM)
+        elif inst == INST_PING:
+            reply(dxl_id, 0)
+        elif inst == INST_READ and len(params) == 2:
+            addr, n = params
+            if addr + n > len(s.table):
+                reply(dxl_id, ERR1_INSTRUCTION)
+            else:
+                reply(dxl_id, 0, bytes(s.table[addr:addr + n]))
+        elif inst == INST_WRITE and len(params) >= 2:
+            reply(dxl_id, s.write(params[0], params[1:]))
+        else:
+            reply(dxl_id, ERR1_INSTRUCTION)
+        return out
+
     def _on_packets(self, buf: bytearray) -> None:
         now = time.monotonic()
+        p1 = self.protocol == 1.0
+        parse, handle = (parse_packets1, self.handle1) if p1 else (parse_packets, self.handle)
         with self._lock:
-            for dxl_id, inst, params, ok in parse_packets(buf):
+            for dxl_id, inst, params, ok in parse(buf):
                 self.packets_in += 1
-                for sid, pkt in self.handle(dxl_id, inst, params, ok):
+                for sid, pkt in handle(dxl_id, inst, params, ok):
                     if self._faulty(sid, "no_reply"):
                         continue
                     due = now
                     if self._faulty(sid, "late"):
                         due = now + self.delay_s
                     if self._faulty(sid, "corrupt_crc"):
-                        pkt = pkt[:-2] + bytes([pkt[-2] ^ 0x5A, pkt[-1]])
+                        pkt = pkt[:-1] + bytes([pkt[-1] ^ 0x5A])   # CRC high byte / checksum
                     self._n += 1
                     heapq.heappush(self._outbox, (due, self._n, pkt))
 
