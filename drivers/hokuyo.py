@@ -165,7 +165,7 @@ class HokuyoDriver(LaserDriver):
     def _stop(self) -> None:
         self._streaming = False
         try:
-            self._command("QT")
+            self._command("QT", tries=2)
         except DeviceError:
             pass
 
