@@ -237,7 +237,6 @@ class ModbusBase:
         self.config = config
         self.errors = ErrorCounters()
         self._client = client
-        self._injected = client is not None
         kind, where, port, opts = _parse_url(config.url)
         self._kind, self._where, self._port = kind, where, port
         self.device_id = int(config.device_id if config.device_id is not None
