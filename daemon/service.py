@@ -94,9 +94,6 @@ class Daemon:
             return 73  # EX_CANTCREAT
         notify.status("opening devices")
         self.supervisor.start()
-        log.info("cgamapd ready: socket %s, state %s, %d devices", self.socket_path,
-                 self.state_dir, len(self.supervisor.workers))
-        notify.ready("mapping")
         try:
             self._main_loop()
         finally:
@@ -117,7 +114,18 @@ class Daemon:
         next_status = time.monotonic()
         odometry_names = [n for n, w in self.supervisor.workers.items()
                           if w.health.role == "odometry"]
+        # READY once every device streams, or after ready_timeout with what there is: a device
+        # that never appears must not hold the service in "activating" until systemd kills it
+        ready_at = time.monotonic() + self.cfg["supervisor"]["ready_timeout"]
+        ready = False
         while not self.stop_event.is_set():
+            if not ready and (self.supervisor.all_running() or time.monotonic() >= ready_at):
+                ready = True
+                running = sum(w.health.state == "running"
+                              for w in self.supervisor.workers.values())
+                log.info("cgamapd ready: socket %s, state %s, %d/%d devices streaming",
+                         self.socket_path, self.state_dir, running, len(self.supervisor.workers))
+                notify.ready(self.status_line())
             self.supervisor.bus.wait(0.05)
             with self.lock:
                 self._drain()
@@ -237,7 +245,7 @@ class Daemon:
                     w.restart()
                     log.info("reload: restarting device %s with its new settings", name)
         log.info("configuration reloaded from %s", self.config_path)
-        notify.ready("mapping")
+        notify.ready(self.status_line())
 
     # -- queries ---------------------------------------------------------------------------
     def command(self, req: dict) -> dict:

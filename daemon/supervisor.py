@@ -272,6 +272,11 @@ class Supervisor:
         return any(w.health.state == "running" for n, w in self.workers.items()
                    if names is None or n in names)
 
+    def all_running(self) -> bool:
+        """Every device has delivered a message since it was (re)opened."""
+        return all(w.health.state in ("running", "finished") and w.health.messages > 0
+                   for w in self.workers.values())
+
     def all_finished(self) -> bool:
         return bool(self.workers) and all(w.health.state in ("finished", "stopped")
                                           for w in self.workers.values())

@@ -109,7 +109,7 @@ def stack_config(laser: Twin | None, base: Twin | None, camera_world: str | None
                              "url": f"sim://{camera_world}", "rate": 1.0,
                              "params": {"size": [320, 200], "fx": 225.0, "epoch_ns": epoch_ns}}
     return {"log_level": "info", "checkpoint": {"interval": checkpoint},
-            "supervisor": {"backoff_initial": 0.1, "backoff_max": 1.0},
+            "supervisor": {"backoff_initial": 0.1, "backoff_max": 1.0, "ready_timeout": 2.0},
             "devices": devices,
             "mapping": {"params3d": {"max_depth": 6.0, "stride": 2}}}
 

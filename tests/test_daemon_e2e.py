@@ -60,6 +60,9 @@ def test_end_to_end(stack):
     d = daemon()
     d.wait_ready()
     assert stat.S_IMODE(d.socket.stat().st_mode) == 0o660
+    # READY waits for the devices to stream (up to supervisor.ready_timeout)
+    first = {x["name"]: x["messages"] for x in d.ask("status")["devices"]}
+    assert first["laser"] > 0 and first["base"] > 0
     driver.start()
     assert wait_until(lambda: d.ask("status")["counts"].get("scans", 0) >= 60, 90), \
         d.log_text()
@@ -110,7 +113,8 @@ def test_end_to_end(stack):
     d2 = daemon()
     d2.wait_ready()
     st2 = d2.ask("status")
-    assert st2["loaded_from"] and st2["map"]["segments"] == len(ck["loop"]["map2d"]["map"]["a"])
+    # (the twin's world keeps moving, so the map may already have grown since)
+    assert st2["loaded_from"] and st2["map"]["segments"] >= len(ck["loop"]["map2d"]["map"]["a"])
     assert d2.terminate()[0] == 0
 
 
