@@ -25,7 +25,7 @@ from cgamap.drivers.sim.modbus_base import (
     square_script,
 )
 from cgamap.mapping.odometry import WheelGeometry, integrate_increments, ticks_to_increment
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 R, B, TPR = 0.05, 0.30, 4096
@@ -45,6 +45,7 @@ def test_word_order_big_and_little():
     assert encode_registers(0x12345678, 2, "big") == [0x1234, 0x5678]
 
 
+@settings(deadline=None)  # no wall-clock limit on a loaded CI box
 @given(st.integers(-(2**31), 2**31 - 1), st.sampled_from(["big", "little"]))
 def test_word_order_round_trip(v, order):
     assert decode_registers(encode_registers(v, 2, order), True, order) == v
@@ -67,6 +68,7 @@ def test_encoder_wrap_unwrap(bits):
     assert unwrap_delta(-(m // 2), m // 2 - 1, bits) == 1
 
 
+@settings(deadline=None)  # no wall-clock limit on a loaded CI box
 @given(st.lists(st.integers(-20000, 20000), min_size=1, max_size=50), st.integers(0, 65535))
 def test_unwrap_recovers_a_16bit_counter(steps, start):
     true = start + np.cumsum(steps)

@@ -25,7 +25,7 @@ from cgamap.drivers.sim.dynamixel import (
     stuff,
     unstuff,
 )
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 # -- framing ----------------------------------------------------------------------------------
@@ -39,6 +39,7 @@ def test_reference_packets():
         "ff ff fd 00 02 0a 00 03 74 00 ff ff fd fd 00 e1 d8"
 
 
+@settings(deadline=None)  # no wall-clock limit on a loaded CI box
 @given(st.binary(max_size=64))
 def test_crc_matches_sdk(data):
     from dynamixel_sdk import PacketHandler
@@ -46,6 +47,7 @@ def test_crc_matches_sdk(data):
     assert crc16(data) == PacketHandler(2.0).updateCRC(0, list(data), len(data))
 
 
+@settings(deadline=None)  # no wall-clock limit on a loaded CI box
 @given(st.lists(st.sampled_from([0x00, 0xFD, 0xFF, 0x55]), max_size=40))
 def test_stuffing_round_trip(body):
     body = bytes(body)
