@@ -33,6 +33,7 @@ class CorrectionParams:
     prior_rot: float = 0.01            # rad, plus per metre:
     prior_rot_per_m: float = 0.03
     sigma_point: float = 0.06          # point-to-line noise (m), map error included
+    converged_gate: float = 0.12       # stop early once the gate is this tight and still
 
 
 @dataclass
@@ -109,6 +110,8 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
         dx = -np.linalg.solve(H, g)
         x = x + dx
         x[2] = float(angle_diff(x[2], 0.0))
+        if gate <= params.converged_gate and np.max(np.abs(dx)) < 1e-4:
+            break  # converged and the gates are already tight
     matched = float(L[matches >= 0].sum())
     matches = np.where(matches >= 0, near[np.maximum(matches, 0)], -1)
     return Correction(x, np.linalg.inv(H), matched, float(L.sum()), rms, matches)

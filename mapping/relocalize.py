@@ -251,3 +251,20 @@ def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
     gy = s * pts[None, :, 0] + c * pts[None, :, 1] + T[:, None, 1]
     d = field.lookup(np.stack([gx, gy], -1))
     return np.mean(d < inlier, axis=-1)
+
+
+def inlier_fraction(points: np.ndarray, pose, a: np.ndarray, b: np.ndarray,
+                    inlier: float) -> float:
+    """Fraction of laser-frame ``points`` within ``inlier`` of segments a-b once moved by
+    ``pose`` (direct point-to-segment distances: for small maps, no distance field)."""
+    if not len(points) or not len(a):
+        return 0.0
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    g = points @ np.array([[c, s], [-s, c]]) + np.asarray(pose[:2])
+    d = b - a
+    L2 = np.maximum(np.sum(d * d, axis=-1), 1e-12)
+    t = np.clip(((g[:, None, 0] - a[None, :, 0]) * d[None, :, 0]
+                 + (g[:, None, 1] - a[None, :, 1]) * d[None, :, 1]) / L2[None, :], 0.0, 1.0)
+    qx = a[None, :, 0] + t * d[None, :, 0] - g[:, None, 0]
+    qy = a[None, :, 1] + t * d[None, :, 1] - g[:, None, 1]
+    return float(np.mean(np.min(qx * qx + qy * qy, axis=1) < inlier * inlier))

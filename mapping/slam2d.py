@@ -16,7 +16,7 @@ from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_pose
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .posegraph import PoseGraph, relative, wrap
-from .relocalize import RelocParams, relocalize
+from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize
 from .segments import SegmentParams, Segments, extract_segments
 
 
@@ -38,9 +38,10 @@ class LoopParams:
     every: int = 2                # try closing loops on every n-th scan
     min_separation: int = 25      # scans between a node and the visits it may close with
     radius: float = 6.0           # look for earlier visits within this distance (m)
-    candidates: int = 1           # earlier visits tried per scan
+    candidates: int = 2           # earlier visits tried per scan (nearest, nearest older)
+    older_gap: int = 50           # "older" means this many scans before the nearest visit
     window: int = 4               # an earlier visit's submap: its scan +- window scans
-    min_score: float = 0.8        # fraction of the scan's points on the submap
+    min_score: float = 0.6        # fraction of the scan's points on the submap
     ambiguity: float = 0.08       # no other pose may score within this of the best
     max_jump: float = 3.0         # the closure may move the pose by at most this (m) ...
     max_turn: float = np.deg2rad(25.0)  # ... and turn it by at most this
@@ -48,6 +49,12 @@ class LoopParams:
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations
+    quiet_after: int = 4          # scans without attempts after a closure that agreed
+    max_std: float = 0.06         # tracking closure: translation std in every direction (m)
+    tracking_score: float = 0.75  # tracking closure: fraction of scan points on the submap
+    tracking: CorrectionParams = field(default_factory=lambda: CorrectionParams(
+        gates=(1.0, 0.6, 0.4, 0.25, 0.15, 0.1, 0.08),
+        angle_gates_deg=(20.0, 12.0, 8.0, 5.0, 4.0, 3.0, 3.0)))
 
 
 @dataclass
@@ -88,9 +95,12 @@ class Mapper:
         self.pending = False
         self.loops = 0
         self.optimizations = 0
+        self.last_loop = -10 ** 9
+        self.calib_n = 0
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
-        self.loop_stats = {"tried": 0, "no_pose": 0, "low_score": 0, "ambiguous": 0}
+        self.loop_stats = {"tracked": 0, "tried": 0, "no_pose": 0, "low_score": 0,
+                           "ambiguous": 0}
 
     @property
     def count(self) -> int:
@@ -135,7 +145,8 @@ class Mapper:
             pose = corr.pose
             if corr.matched_fraction >= P.calib_min_fraction and d_odo > 0.2:
                 got = relative(prev, pose)
-                a = P.calib_rate
+                self.calib_n += 1
+                a = max(P.calib_rate, 1.0 / self.calib_n)  # a plain mean until the EMA takes over
                 self.drift_per_m += a * (float(wrap(raw[2] - got[2])) / d_odo - self.drift_per_m)
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
@@ -173,16 +184,23 @@ class Mapper:
             return 0
         if i % LP.every:
             return 0
+        if i - self.last_loop <= LP.quiet_after and not self.pending:
+            return 0  # just closed with a small disagreement: still on the old map
         X = self.poses
         old = X[: i - LP.min_separation + 1]
         dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
         order = np.argsort(dist)
         tried, added = [], 0
-        for j in order[: 8 * LP.candidates]:
-            if dist[j] > LP.radius or len(tried) >= LP.candidates:
-                break
-            if any(abs(int(j) - t) <= 2 * LP.window for t in tried):
-                continue
+        near = order[dist[order] <= LP.radius]
+        # the nearest earlier visit, then the nearest of clearly older visits: ties to the
+        # oldest parts of the map keep the whole trajectory consistent
+        picks = []
+        if len(near):
+            picks.append(int(near[0]))
+            older = near[near < picks[0] - LP.older_gap]
+            if len(older) and LP.candidates > 1:
+                picks.append(int(older[0]))
+        for j in picks:
             tried.append(int(j))
             sel = (np.abs(self.map.c_node - j) <= LP.window) & (
                 self.map.c_node <= i - LP.min_separation)
@@ -195,24 +213,28 @@ class Mapper:
             sub = LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
                           np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
             guess = relative(X[j], X[i])
-            res = relocalize(sub, seg, None, self.params.reloc)
-            self.loop_stats["tried"] += 1
-            near = [h for h in res.hypotheses
-                    if np.hypot(*(h.pose[:2] - guess[:2])) < LP.max_jump
-                    and abs(wrap(h.pose[2] - guess[2])) < LP.max_turn]
-            if not near:
-                self.loop_stats["no_pose"] += 1
-                continue
-            if near[0].score < LP.min_score:
-                self.loop_stats["low_score"] += 1
-                continue
-            best = near[0]
-            rivals = [h for h in res.hypotheses if h is not best
-                      and np.hypot(*(h.pose[:2] - best.pose[:2])) > 0.3
-                      and h.score > best.score - LP.ambiguity]
-            if rivals:
-                self.loop_stats["ambiguous"] += 1
-                continue
+            best = self._closure_by_tracking(seg, sub, guess)
+            if best is None:
+                res = relocalize(sub, seg, None, self.params.reloc)
+                self.loop_stats["tried"] += 1
+                near = [h for h in res.hypotheses
+                        if np.hypot(*(h.pose[:2] - guess[:2])) < LP.max_jump
+                        and abs(wrap(h.pose[2] - guess[2])) < LP.max_turn]
+                if not near:
+                    self.loop_stats["no_pose"] += 1
+                    continue
+                if near[0].score < LP.min_score:
+                    self.loop_stats["low_score"] += 1
+                    continue
+                best = near[0]
+                rivals = [h for h in res.hypotheses if h is not best
+                          and np.hypot(*(h.pose[:2] - best.pose[:2])) > 0.3
+                          and h.score > best.score - LP.ambiguity]
+                if rivals:
+                    self.loop_stats["ambiguous"] += 1
+                    continue
+            else:
+                self.loop_stats["tracked"] += 1
             st, sr = LP.sigma
             self.graph.add_edge(int(j), i, best.pose, np.diag([st ** -2, st ** -2, sr ** -2]),
                                 loop=True)
@@ -221,13 +243,28 @@ class Mapper:
             e = relative(guess, best.pose)
             if np.hypot(e[0], e[1]) > LP.optimize_trans or abs(e[2]) > LP.optimize_rot:
                 self.pending = True
+            self.last_loop = i
         return added
 
-    def optimize(self) -> None:
+    def _closure_by_tracking(self, seg: Segments, sub: LineMap, guess: np.ndarray):
+        """The cheap way first: point-to-line correction from the current estimate with wide
+        gates; accepted when it fixes the pose in every direction and the scan fits."""
+        LP = self.params.loop
+        corr = correct_pose(seg, sub.a, sub.b, guess, 4.0, LP.tracking)
+        std = np.sqrt(np.linalg.eigvalsh(corr.cov[:2, :2]).max())
+        if std > LP.max_std or corr.matched_fraction < 0.5:
+            return None
+        sc = inlier_fraction(seg.points, corr.pose, sub.a, sub.b, self.params.reloc.inlier_dist)
+        if sc < LP.tracking_score:
+            return None
+        return Hypothesis(corr.pose, sc)
+
+    def optimize(self, final: bool = False) -> None:
         """Solve the pose graph and move the map with it."""
         self.graph.optimize()
         refresh(self.map, self.poses)
-        dedupe(self.map, self.params.map)
+        # the walls near the closure are the ones that came to coincide
+        dedupe(self.map, self.params.map, since=None if final else self.count - 60)
         self.pending = False
         self.last_opt = self.count - 1
         self.optimizations += 1
@@ -235,5 +272,5 @@ class Mapper:
     def finish(self) -> np.ndarray:
         """Final optimisation (if loops were closed); returns the laser poses (n, 3)."""
         if self.params.loop.enabled and self.loops:
-            self.optimize()
+            self.optimize(final=True)
         return self.poses
