@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import urlsplit
 
 LASER_CLASSES = {
     "lms2xx": ("cgamap.drivers.lms2xx", "Lms2xxDriver"),
@@ -239,6 +239,3 @@ class ReplaySource:
     def close(self) -> None:
         self.it = None
 
-
-def replay_url_query(url: str) -> dict:
-    return {k: v[-1] for k, v in parse_qs(urlsplit(url).query).items()}
