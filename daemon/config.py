@@ -137,7 +137,7 @@ SCHEMA = Spec("record", fields={
     }),
     "supervisor": Spec("record", default={}, fields={
         "backoff_initial": Spec("float", default=0.2, check=_positive),
-        "backoff_max": Spec("float", default=2.0, check=_positive),
+        "backoff_max": Spec("float", default=1.0, check=_positive),
         # READY=1 when all devices stream, or after this many seconds with those that do
         "ready_timeout": Spec("float", default=10.0, check=_non_negative),
     }),

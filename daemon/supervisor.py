@@ -125,7 +125,7 @@ class DeviceWorker(threading.Thread):
 
     def __init__(self, name: str, role: str, factory: Callable[[], DeviceSource],
                  queue: BoundedQueue, read_timeout: float = 0.5, backoff_initial: float = 0.2,
-                 backoff_max: float = 2.0, stall_s: float = 5.0):
+                 backoff_max: float = 1.0, stall_s: float = 5.0):
         super().__init__(name=f"dev-{name}", daemon=True)
         self.factory = factory
         self.queue = queue
@@ -233,7 +233,7 @@ END = EndOfStream()
 class Supervisor:
     """Owns the device workers and the bus."""
 
-    def __init__(self, backoff_initial: float = 0.2, backoff_max: float = 2.0,
+    def __init__(self, backoff_initial: float = 0.2, backoff_max: float = 1.0,
                  stall_s: float = 5.0):
         self.bus = Bus()
         self.workers: dict[str, DeviceWorker] = {}
