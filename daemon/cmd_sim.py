@@ -28,6 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed for noise and faults")
     p.add_argument("--port", type=int, default=0, help="TCP port for network twins (0: any)")
     p.add_argument("--rtu", action="store_true", help="modbus-base: Modbus RTU on a pty")
+    p.add_argument("--model", default=None,
+                   help="hokuyo: UTM-30LX (default), URG-04LX or UST-10LX (TCP)")
     p.set_defaults(func=run)
 
 
