@@ -223,6 +223,14 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
                     d["enabled"] = False
             resolved.write_text(yaml.safe_dump(raw, sort_keys=False))
         sock = config_mod.resolve_paths(cfg)[1]
+        # drive from now on: the laser twin's robot moves on its own clock, so the base must
+        # move with it before the daemon reads either
+        base_dev = next(d for d in cfg["devices"].values() if d["role"] == "odometry")
+        geom = {"wheel_radius": 0.05, "track_width": 0.30,
+                **{("track_width" if k == "track" else k): v
+                   for k, v in base_dev["params"].items()}}
+        driver = Driver(twins["modbus-base"].url, world, epoch, geom)
+        driver.start()
         notify = NotifyListener(run_dir / "notify")
         env = dict(os.environ, NOTIFY_SOCKET=str(notify.path), WATCHDOG_USEC="2000000")
         env.pop("STATE_DIRECTORY", None)
@@ -236,12 +244,6 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
             raise RuntimeError(f"cgamapd did not report READY (see {out / 'cgamapd.log'})")
         progress(f"cgamapd ready (socket {sock}); driving for {duration:.0f} s through "
                  f"the simulated '{world_name}' world")
-        base_dev = next(d for d in cfg["devices"].values() if d["role"] == "odometry")
-        geom = {"wheel_radius": 0.05, "track_width": 0.30,
-                **{("track_width" if k == "track" else k): v
-                   for k, v in base_dev["params"].items()}}
-        driver = Driver(twins["modbus-base"].url, world, epoch, geom)
-        driver.start()
         t0 = time.monotonic()
         next_report = t0
         while time.monotonic() - t0 < duration:
