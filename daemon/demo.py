@@ -294,6 +294,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
         report.update({
             "truth": err, "segments": len(map_reply["segments"]),
             "planes": len(map_reply["planes"]), "counts": status["counts"],
+            "timing_ms": status.get("timing_ms"),
             "devices": {d["name"]: {k: d[k] for k in ("state", "restarts", "messages")}
                         for d in status["devices"]},
             "driver_commands": driver.commands, "driver_error": driver.error,
@@ -348,5 +349,11 @@ def write_report(out: Path, report: dict) -> None:
               f"Daemon exit code {report.get('daemon_exit')} after SIGTERM in "
               f"{report.get('stop_s')} s; final checkpoint "
               f"{'valid' if report.get('checkpoint_ok') else 'MISSING'}.", ""]
+    tm = report.get("timing_ms") or {}
+    c = report.get("counts") or {}
+    lines += [f"Mapping: {c.get('scans', 0)} scans mapped of {c.get('scans_in', 0)} received "
+              f"({tm.get('scan_ms', 0):.1f} ms each), {c.get('frames', 0)} stereo frames "
+              f"({tm.get('frame_ms', 0):.0f} ms each); pipeline errors: "
+              f"{sum(v for k, v in c.items() if k.startswith('errors'))}.", ""]
     lines += ["Files: " + ", ".join(Path(f).name for f in report.get("files", [])), ""]
     (out / "report.md").write_text("\n".join(lines))
