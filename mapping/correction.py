@@ -26,8 +26,8 @@ _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate qua
 
 @dataclass(frozen=True)
 class CorrectionParams:
-    gates: tuple[float, ...] = (0.4, 0.3, 0.2, 0.15, 0.1, 0.08, 0.08)
-    angle_gates_deg: tuple[float, ...] = (15.0, 10.0, 7.0, 5.0, 4.0, 3.0, 3.0)
+    gates: tuple[float, ...] = (0.4, 0.25, 0.15, 0.1, 0.08)
+    angle_gates_deg: tuple[float, ...] = (15.0, 9.0, 5.0, 4.0, 3.0)
     prior_trans: float = 0.02          # odometry prior std (m) at zero travel ...
     prior_trans_per_m: float = 0.08    # ... plus this per metre of odometry step
     prior_rot: float = 0.01            # rad, plus per metre:
@@ -110,7 +110,7 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
         dx = -np.linalg.solve(H, g)
         x = x + dx
         x[2] = float(angle_diff(x[2], 0.0))
-        if gate <= params.converged_gate and np.max(np.abs(dx)) < 1e-4:
+        if gate <= params.converged_gate and np.max(np.abs(dx)) < 5e-4:
             break  # converged and the gates are already tight
     matched = float(L[matches >= 0].sum())
     matches = np.where(matches >= 0, near[np.maximum(matches, 0)], -1)

@@ -41,14 +41,16 @@ class RelocParams:
     max_scan_lines: int = 6           # longest scan segments used for hypotheses
     angle_tol_deg: float = 3.0        # map/scan line pairing under a rotation hypothesis
     grid: float = 0.2                 # translation vote cell (m)
-    translation_peaks: int = 20       # cells verified per rotation hypothesis
+    translation_peaks: int = 200      # cells verified per rotation hypothesis
     overlap_slack: float = 0.3        # a scan segment may stick out of its map segment by
     inlier_dist: float = 0.12
-    coarse_dist: float = 0.3          # first ranking of the (coarse) translation cells
+    coarse_dist: float = 0.2          # first ranking of the (coarse) translation cells
     refine: int = 6                   # best hypotheses refined by point-to-line matching
     min_score: float = 0.5            # "not found" under this fraction of inlier points
     field_resolution: float = 0.05
-    verify_points: int = 90
+    verify_points: int = 40
+    crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
+    crossing_step: float = 0.08       # free-space samples along each beam (m)
 
 
 @dataclass
@@ -183,6 +185,21 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
                                   P.overlap_slack)
                 T = np.stack([tx[good], ty[good]], -1)
                 Ts.append(T)
+        if sum(len(t) for t in Ts) == 0:
+            # only parallel lines (a corridor): the position along them comes from end
+            # points -- align each end of the longest scan lines with each end of the map
+            # segments they may lie on
+            for i1 in range(min(2, k)):
+                g = np.nonzero(pair[:, i1])[0]
+                if not len(g):
+                    continue
+                d = c_g[g] - sgn[g, i1] * c_l[i1]
+                u = np.column_stack([-n_g[g, 1], n_g[g, 0]])
+                ends_g = [np.sum(lmap.a[g] * u, -1), np.sum(lmap.b[g] * u, -1)]
+                ends_l = [u @ ra[i1], u @ rb[i1]]
+                for eg in ends_g:
+                    for el in ends_l:
+                        Ts.append(d[:, None] * n_g[g] + (eg - el)[:, None] * u)
         if not Ts:
             continue
         T = np.concatenate(Ts)
@@ -219,6 +236,11 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         corr = correct_pose(seg, lmap.a, lmap.b, pose0, 0.0, cp)
         pose = corr.pose
         sc = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist)[0])
+        if P.crossing_weight:
+            # negative evidence: beams that would pass through mapped walls (off by default:
+            # maps built from real logs keep clutter in free space, and it cost more than it
+            # gained on the Intel log)
+            sc -= P.crossing_weight * crossing_fraction(field, seg.points, pose)
         hyps.append(Hypothesis(pose, sc))
     hyps.sort(key=lambda h: -h.score)
     if not hyps or hyps[0].score < P.min_score:
@@ -268,3 +290,22 @@ def inlier_fraction(points: np.ndarray, pose, a: np.ndarray, b: np.ndarray,
     qx = a[None, :, 0] + t * d[None, :, 0] - g[:, None, 0]
     qy = a[None, :, 1] + t * d[None, :, 1] - g[:, None, 1]
     return float(np.mean(np.min(qx * qx + qy * qy, axis=1) < inlier * inlier))
+
+
+def crossing_fraction(field: DistanceField, points: np.ndarray, pose, step: float = 0.08,
+                      near: float = 0.3) -> float:
+    """Fraction of beams (laser origin -> point) that pass through a mapped wall more than
+    ``near`` before their end: free space the hypothesis claims the map says is a wall."""
+    if not len(points):
+        return 0.0
+    r = np.linalg.norm(points, axis=-1)
+    n = int(np.ceil(min(r.max(), 20.0) / step))
+    f = (np.arange(1, n + 1) * step)[None, :]                       # distances along beams
+    valid = f < (r[:, None] - near)
+    u = points / np.maximum(r, 1e-9)[:, None]
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    ug = u @ np.array([[c, s], [-s, c]])
+    samp = np.asarray(pose[:2])[None, None, :] + f[..., None] * ug[:, None, :]
+    d = field.lookup(samp)
+    hit = np.any((d < 0.6 * step + 0.5 * field.res) & valid, axis=1)
+    return float(np.mean(hit))

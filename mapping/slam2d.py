@@ -35,7 +35,7 @@ def invert(p) -> np.ndarray:
 @dataclass(frozen=True)
 class LoopParams:
     enabled: bool = True
-    every: int = 2                # try closing loops on every n-th scan
+    every: int = 3                # try closing loops on every n-th scan
     min_separation: int = 25      # scans between a node and the visits it may close with
     radius: float = 6.0           # look for earlier visits within this distance (m)
     candidates: int = 2           # earlier visits tried per scan (nearest, nearest older)

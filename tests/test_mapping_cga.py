@@ -110,3 +110,16 @@ def test_containment_is_a_candidate():
                              np.array([[-5.0, 0.0]]), np.array([[5.0, 0.0]]),
                              np.deg2rad(5), 0.1, margin=0.3)
     assert not ok[0, 0]
+
+
+@settings(max_examples=30, deadline=None)
+@given(coord, coord, st.floats(-3.14, 3.14))
+def test_planar_motor_is_the_cga_motor(x, y, th):
+    from cgamap.cga import motor_from_pose2d
+    from cgamap.mapping.cga_segments import motor_planar_pose, planar_motor
+
+    M = planar_motor(x, y, th)
+    assert np.allclose(M.v, motor_from_pose2d(x, y, th).v, atol=1e-12)
+    px, py, pth = motor_planar_pose(M)
+    assert (px, py) == pytest.approx((x, y), abs=1e-9)
+    assert abs(np.angle(np.exp(1j * (pth - th)))) < 1e-9
