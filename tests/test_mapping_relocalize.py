@@ -67,8 +67,10 @@ def test_symmetric_room_gives_ranked_hypotheses():
 
 def test_unrelated_scan_is_not_found(loop_world):
     _, _, m = loop_world
-    other = world([(-1, -1, 1, -1), (1, -1, 1, 1.5), (1, 1.5, -1, 1), (-1, 1, -1, -1),
-                   (-0.3, 0.2, 0.4, -0.5)])
+    # a triangular room: its walls meet at 60 degrees, no pair of the map's walls does
+    h = 3.0 * np.sqrt(3.0) / 2
+    other = world([(-1.5, -h / 3, 1.5, -h / 3), (1.5, -h / 3, 0.0, 2 * h / 3),
+                   (0.0, 2 * h / 3, -1.5, -h / 3)])
     r = relocalize(m, segments_from_scan(scan(other, (0.0, 0.0, 0.4), n=360,
                                               fov=2 * np.pi)))
     assert not r.found and r.pose is None
