@@ -188,6 +188,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
     sim = base_cfg["sim"]
     world_name = world_name or sim.get("world", "loop")
     world = get_world(world_name)
+    out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     run_dir = Path(os.environ.get("XDG_RUNTIME_DIR") or "/tmp") / f"cgamap-demo-{os.getpid()}"
     run_dir.mkdir(parents=True, exist_ok=True)
