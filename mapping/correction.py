@@ -44,6 +44,7 @@ class Correction:
     total_length: float
     rms: float                # RMS point-to-line residual of the matches (m)
     matches: np.ndarray       # map index per scan segment, -1 unmatched
+    near: np.ndarray | None = None  # map segments within the widest gate of the scan
 
     @property
     def matched_fraction(self) -> float:
@@ -114,4 +115,4 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
             break  # converged and the gates are already tight
     matched = float(L[matches >= 0].sum())
     matches = np.where(matches >= 0, near[np.maximum(matches, 0)], -1)
-    return Correction(x, np.linalg.inv(H), matched, float(L.sum()), rms, matches)
+    return Correction(x, np.linalg.inv(H), matched, float(L.sum()), rms, matches, near)

@@ -136,17 +136,25 @@ def _components(u: np.ndarray, v: np.ndarray, n: int) -> list[list[int]]:
 
 def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
               params: MapParams | None = None, seg_l: Segments | None = None,
-              node: int | None = None) -> np.ndarray:
+              node: int | None = None, candidates: np.ndarray | None = None) -> np.ndarray:
     """Fuse global-frame observations into the map (in place). Returns, per observation,
     the index of the map segment it went into (after the update).  With ``seg_l`` (the same
-    segments in the laser frame) and ``node``, the observations are kept as contributions."""
+    segments in the laser frame) and ``node``, the observations are kept as contributions;
+    ``candidates`` restricts the search to those map indices (e.g. the ones near the scan)."""
     params = params or MapParams()
     k = len(seg_g)
     if k == 0:
         return np.zeros(0, int)
-    ok, _ = match_candidates(seg_g.a, seg_g.b, lmap.a, lmap.b, params.merge_angle,
-                             params.merge_dist, params.merge_margin)
-    ii, jj = np.nonzero(ok)
+    if candidates is None:
+        ok, _ = match_candidates(seg_g.a, seg_g.b, lmap.a, lmap.b, params.merge_angle,
+                                 params.merge_dist, params.merge_margin)
+        ii, jj = np.nonzero(ok)
+    else:
+        cand = np.asarray(candidates, dtype=int)
+        ok, _ = match_candidates(seg_g.a, seg_g.b, lmap.a[cand], lmap.b[cand],
+                                 params.merge_angle, params.merge_dist, params.merge_margin)
+        ii, jj = np.nonzero(ok)
+        jj = cand[jj]
     new = np.setdiff1d(np.arange(k), ii)
     target = np.full(k, -1)
     remove: list[int] = []

@@ -47,16 +47,25 @@ def sphere_relation(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
 
 def spheres_touch(a1, b1, a2, b2, margin: float = 0.0) -> np.ndarray:
     """(k1, k2) bool: the segments' spheres (enlarged by margin) intersect, touch, or one
-    contains the other."""
-    s1, s2 = sphere_vectors(a1, b1, margin), sphere_vectors(a2, b2, margin)
-    q = sphere_relation(s1, s2)
-    c1, c2 = s1[:, :2], s2[:, :2]
-    d = np.linalg.norm(c1[:, None, :] - c2[None, :, :], axis=-1)
-    r1 = 0.5 * np.linalg.norm(b1 - a1, axis=-1) + margin
-    r2 = 0.5 * np.linalg.norm(b2 - a2, axis=-1) + margin
-    contained = d <= np.abs(r1[:, None] - r2[None, :])
-    scale = np.maximum(1.0, (r1[:, None] * r2[None, :]) ** 2)
-    return (q <= 1e-12 * scale) | contained
+    contains the other.
+
+    Eq. (15) evaluated through the inner products of the sphere vectors: for normalised
+    IPNS spheres s_i = up(c_i) - r_i^2/2 einf, s_i . s_i = r_i^2 and
+    s1 . s2 = (r1^2 + r2^2 - d^2) / 2 (d the centre distance), so
+    (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 without forming the 5-vectors (``sphere_relation``
+    is the coefficient form, pinned against cga.spheres_intersect by a test).
+    """
+    c1, c2 = 0.5 * (a1 + b1), 0.5 * (a2 + b2)
+    r1 = 0.5 * np.hypot(*(b1 - a1).T) + margin
+    r2 = 0.5 * np.hypot(*(b2 - a2).T) + margin
+    dx = c1[:, None, 0] - c2[None, :, 0]
+    dy = c1[:, None, 1] - c2[None, :, 1]
+    d2 = dx * dx + dy * dy
+    R1, R2 = (r1 * r1)[:, None], (r2 * r2)[None, :]
+    s12 = 0.5 * (R1 + R2 - d2)
+    q = s12 * s12 - R1 * R2
+    contained = d2 <= (r1[:, None] - r2[None, :]) ** 2
+    return (q <= 1e-12 * np.maximum(1.0, R1 * R2)) | contained
 
 
 def line_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -110,9 +119,14 @@ def match_candidates(a1, b1, a2, b2, max_angle: float, max_dist: float,
     if k1 == 0 or k2 == 0:
         return np.zeros((k1, k2), bool), np.zeros((k1, k2))
     near = spheres_touch(a1, b1, a2, b2, margin)
-    dang = undirected_angle_diff(line_angle(a1, b1)[:, None], line_angle(a2, b2)[None, :])
-    da, db = endpoint_distances(a1, b1, a2, b2)
-    dist = np.maximum(np.abs(da), np.abs(db))
-    ok = near & (dang < max_angle) & (dist < max_dist)
-    cost = 0.5 * (np.abs(da) + np.abs(db)) + 0.5 * dang
+    d1 = b1 - a1
+    d1 = d1 / np.maximum(np.hypot(*d1.T), 1e-12)[:, None]
+    n2, c2 = line_normals(a2, b2)
+    # |sin| of the undirected angle between the lines: d1 . n2 (n2 is d2 turned by 90 deg)
+    sin_ang = np.abs(d1 @ n2.T)
+    da = a1 @ n2.T - c2[None, :]
+    db = b1 @ n2.T - c2[None, :]
+    ada, adb = np.abs(da), np.abs(db)
+    ok = near & (sin_ang < np.sin(max_angle)) & (ada < max_dist) & (adb < max_dist)
+    cost = 0.5 * (ada + adb) + 0.5 * sin_ang
     return ok, np.where(ok, cost, np.inf)

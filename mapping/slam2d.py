@@ -129,7 +129,7 @@ class Mapper:
             pose = self._laser(self.initial)
             i = self.graph.add_node(pose)
             self.last_odom = odom_l
-            self._merge(seg, i)
+            self._merge(seg, i, None)
             return StepResult(pose, len(seg), None)
         raw = relative(self.last_odom, odom_l)
         self.last_odom = odom_l
@@ -163,14 +163,17 @@ class Mapper:
             if self.pending and i - self.last_opt >= P.loop.cooldown:
                 self.optimize()
                 optimized = True
-        self._merge(seg, i)
+        # the correction already found the map segments near this scan (unless an
+        # optimisation has just moved the map)
+        near = corr.near if corr is not None and not optimized else None
+        self._merge(seg, i, near)
         return StepResult(self.graph.poses[i].copy(), len(seg), corr, loops, optimized)
 
-    def _merge(self, seg: Segments, node: int) -> None:
+    def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
         P = self.params
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
-        integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node)
+        integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
         age_out(self.map, node, P.map)
         if node % P.map.dedupe_every == 0:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)
