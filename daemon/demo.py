@@ -282,6 +282,9 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
         files = []
         files += export(world_map, "png", out / "map.png", trajectory=aligned, reference=ref)
         files += export(map_reply, "ply", out / "map3d.ply")
+        from cgamap.daemon.export import render_3d_png
+
+        files += render_3d_png(map_reply, out / "map3d.png")  # the daemon's map frame
         files += export(map_reply, "json", out / "map.json")
         files += export(map_reply, "pgm", out / "map.pgm")
         # stop the daemon the way systemd does, and check its last checkpoint

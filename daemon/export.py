@@ -68,6 +68,43 @@ def export_ply(map_reply: dict, path: Path, wall_height: float = 2.0) -> list[Pa
     return [path]
 
 
+def render_3d_png(map_reply: dict, path: Path, size: tuple[int, int] = (960, 640),
+                  wall_height: float = 2.0, azimuth_deg: float = -60.0,
+                  elevation_deg: float = 35.0) -> list[Path]:
+    """An oblique view of the 3D map: virtual walls (grey) and camera planes (blue), painted
+    far to near (orthographic projection, Lambert shading)."""
+    import cv2
+
+    v, f, c = ply_mesh(map_reply, wall_height)
+    img = np.full((size[1], size[0], 3), 255, np.uint8)
+    if not len(f):
+        cv2.imwrite(str(path), img)
+        return [path]
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    fwd = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    uv = np.stack([v @ right, -(v @ up)], axis=1)
+    lo, hi = uv.min(0), uv.max(0)
+    scale = 0.92 * min(size[0] / max(hi[0] - lo[0], 1e-6), size[1] / max(hi[1] - lo[1], 1e-6))
+    px = ((uv - (lo + hi) / 2) * scale + np.array(size) / 2).round().astype(np.int32)
+    quads = v[f]                                        # (m, 4, 3)
+    normal = np.cross(quads[:, 1] - quads[:, 0], quads[:, 3] - quads[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    shade = 0.55 + 0.45 * np.abs(normal @ light)
+    depth = (quads.mean(1) @ fwd)
+    for i in np.argsort(-depth):                         # far first
+        poly = px[f[i]].reshape(-1, 1, 2)
+        col = tuple(int(x) for x in (c[i][::-1] * shade[i]).clip(0, 255))  # BGR
+        cv2.fillPoly(img, [poly], col, cv2.LINE_AA)
+        cv2.polylines(img, [poly], True, (60, 60, 60), 1, cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        raise OSError(f"{path}: could not write PNG")
+    return [path]
+
+
 def read_ply_counts(path: Path) -> tuple[int, int]:
     """(vertices, faces) from a PLY header (for checks)."""
     nv = nf = 0

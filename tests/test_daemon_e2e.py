@@ -185,3 +185,16 @@ def test_replay_of_a_real_carmen_log(tmp_path, shared_data):
         assert len(ck["loop"]["map2d"]["map"]["a"]) >= 10
     finally:
         shutil.rmtree(run, ignore_errors=True)
+
+
+def test_3d_render_and_ply_of_a_small_map(tmp_path):
+    from cgamap.daemon.export import export, ply_mesh, render_3d_png
+
+    reply = {"segments": [[0, 0, 4, 0], [4, 0, 4, 3]], "planes": [
+        {"corners": [[0, 0, 0], [4, 0, 0], [4, 3, 0], [0, 3, 0]]}]}
+    v, f, c = ply_mesh(reply, wall_height=2.0)
+    assert f.shape == (3, 4) and v[f[0]][:, 2].tolist() == [0, 0, 2, 2]
+    export(reply, "ply", tmp_path / "m.ply")
+    assert read_ply_counts(tmp_path / "m.ply") == (12, 3)
+    render_3d_png(reply, tmp_path / "m.png")
+    assert (tmp_path / "m.png").stat().st_size > 1000
