@@ -46,6 +46,9 @@ SERVICE_USER ?= cgamap
 
 .PHONY: install-service soak
 install-service: $(STAMP_RUN)
+	@case "$(abspath $(BIN))" in /home/*|/root/*) echo "install-service: $(abspath $(BIN)) is \
+	under /home or /root, which the unit hides (ProtectHome=yes): clone into /opt or /srv" >&2; \
+	exit 1;; esac
 	$(BIN)/cgamapd --check-config config/robot.yaml
 	getent group plugdev >/dev/null || groupadd --system plugdev
 	getent passwd $(SERVICE_USER) >/dev/null || useradd --system --user-group \
@@ -54,8 +57,8 @@ install-service: $(STAMP_RUN)
 	install -d -m 0755 $(CONF_DIR)
 	for f in robot.yaml hand_eye.yaml; do \
 		[ -e $(CONF_DIR)/$$f ] || install -m 0644 config/$$f $(CONF_DIR)/$$f; done
-	sed 's|/usr/local/bin/cgamapd|$(abspath $(BIN))/cgamapd|g' systemd/cgamapd.service \
-		> $(PREFIX_UNIT)/cgamapd.service
+	sed -e 's|/usr/local/bin/cgamapd|$(abspath $(BIN))/cgamapd|g' \
+		-e 's|/etc/cgamap/|$(CONF_DIR)/|g' systemd/cgamapd.service > $(PREFIX_UNIT)/cgamapd.service
 	install -m 0644 systemd/99-cgamap-serial.rules $(UDEV_RULES)/99-cgamap-serial.rules
 	-udevadm control --reload-rules && udevadm trigger --subsystem-match=usb-serial
 	-systemctl daemon-reload
