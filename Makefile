@@ -46,9 +46,10 @@ SERVICE_USER ?= cgamap
 
 .PHONY: install-service soak
 install-service: $(STAMP_RUN)
-	@case "$(abspath $(BIN))" in /home/*|/root/*) echo "install-service: $(abspath $(BIN)) is \
-	under /home or /root, which the unit hides (ProtectHome=yes): clone into /opt or /srv" >&2; \
-	exit 1;; esac
+	@for p in "$(abspath $(BIN))" "$$(readlink -f $(BIN)/python)"; do case "$$p" in \
+	/home/*|/root/*) echo "install-service: $$p is under /home or /root, which the unit \
+	hides (ProtectHome=yes): use a Python and a clone outside them (/usr, /opt, /srv)" >&2; \
+	exit 1;; esac; done
 	$(BIN)/cgamapd --check-config config/robot.yaml
 	getent group plugdev >/dev/null || groupadd --system plugdev
 	getent passwd $(SERVICE_USER) >/dev/null || useradd --system --user-group \
