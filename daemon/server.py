@@ -26,7 +26,7 @@ MAX_LINE = 65536
 
 
 class Handler(socketserver.StreamRequestHandler):
-    timeout = None
+    timeout = 600.0  # an idle client gives its slot back after 10 min (watch never idles)
 
     def handle(self) -> None:
         server: Any = self.server
@@ -52,7 +52,7 @@ class Handler(socketserver.StreamRequestHandler):
                     server.app.watch(req, self._send, server.stopping)
                     return
                 self._send(server.app.command(req))
-        except (BrokenPipeError, ConnectionResetError):
+        except (BrokenPipeError, ConnectionResetError, TimeoutError):
             return
         finally:
             server.slots.release()
