@@ -133,10 +133,29 @@ def _replay_intel(max_scans: int = 400) -> dict:
 
 def run() -> dict:
     return {"checkpoint": _checkpoint_cost(), "query": _query_latency(),
-            "replay_intel": _replay_intel()}
+            "replay_intel": _replay_intel(), "sim_stack": _sim_stack()}
 
 
 if __name__ == "__main__":
     import json
 
     print(json.dumps(run(), indent=1))
+
+
+def _sim_stack(duration: float = 15.0) -> dict:
+    """The demo stack (Hokuyo + base twins, no camera) for a short drive."""
+    from cgamap.daemon.demo import run_demo
+
+    out = Path(tempfile.mkdtemp())
+    try:
+        rep = run_demo(out, duration, camera=False, progress=lambda *_: None)
+        t = rep.get("truth", {})
+        return {"duration_s": duration, "path_m": round(t.get("path_length_m", 0.0), 2),
+                "ate_trans_m": t.get("ate_trans_m"), "ate_rot_deg": t.get("ate_rot_deg"),
+                "rpe_trans_m": t.get("rpe_trans_m"), "scans_mapped": rep["counts"].get("scans"),
+                "scans_received": rep["counts"].get("scans_in"),
+                "scan_ms": (rep.get("timing_ms") or {}).get("scan_ms"),
+                "daemon_cpu_fraction": rep.get("daemon_cpu_fraction"),
+                "sigterm_to_exit_s": rep.get("stop_s")}
+    finally:
+        shutil.rmtree(out, ignore_errors=True)

@@ -238,6 +238,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
         env.pop("RUNTIME_DIRECTORY", None)
         log = open(out / "cgamapd.log", "w")  # noqa: SIM115 - closed with the process
         progress("starting cgamapd ...")
+        t_daemon = time.monotonic()
         daemon = subprocess.Popen([sys.executable, "-m", "cgamap.daemon.main", "-c",
                                    str(resolved)], env=env, stdout=log, stderr=log)
         procs.append(daemon)
@@ -287,6 +288,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
         files += render_3d_png(map_reply, out / "map3d.png")  # the daemon's map frame
         files += export(map_reply, "json", out / "map.json")
         files += export(map_reply, "pgm", out / "map.pgm")
+        cpu_s = process_cpu_s(daemon.pid)
         # stop the daemon the way systemd does, and check its last checkpoint
         t_stop = time.monotonic()
         daemon.send_signal(signal.SIGTERM)
@@ -303,6 +305,8 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
                         for d in status["devices"]},
             "driver_commands": driver.commands, "driver_error": driver.error,
             "daemon_exit": rc, "stop_s": round(stop_s, 3),
+            "daemon_cpu_s": cpu_s, "daemon_cpu_fraction": None if cpu_s is None else
+            round(cpu_s / max(time.monotonic() - t_daemon, 1e-9), 3),
             "checkpoint_ok": ck is not None and ck.get("reason") == "shutdown",
             "notify": sorted(set(m.split("=")[0] for m in notify.messages if m)),
             "files": [str(f) for f in files],
@@ -329,6 +333,15 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
                 f.unlink()
         with contextlib.suppress(OSError):
             run_dir.rmdir()
+
+
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a live process (Linux /proc), else None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 2)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def write_report(out: Path, report: dict) -> None:
@@ -358,6 +371,8 @@ def write_report(out: Path, report: dict) -> None:
     lines += [f"Mapping: {c.get('scans', 0)} scans mapped of {c.get('scans_in', 0)} received "
               f"({tm.get('scan_ms', 0):.1f} ms each), {c.get('frames', 0)} stereo frames "
               f"({tm.get('frame_ms', 0):.0f} ms each); pipeline errors: "
-              f"{sum(v for k, v in c.items() if k.startswith('errors'))}.", ""]
+              f"{sum(v for k, v in c.items() if k.startswith('errors'))}; daemon CPU "
+              f"{report.get('daemon_cpu_s')} s ({report.get('daemon_cpu_fraction')} of one "
+              "core).", ""]
     lines += ["Files: " + ", ".join(Path(f).name for f in report.get("files", [])), ""]
     (out / "report.md").write_text("\n".join(lines))
