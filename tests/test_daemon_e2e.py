@@ -97,6 +97,12 @@ def test_end_to_end(stack):
     assert err["ate_trans_m"] < 0.15 and err["ate_rot_deg"] < 3.0
     driver.stop_event.set()
     driver.join(5)
+    before = d.ask("status")["pose"]
+    reloc = d.ask("relocalize")
+    print("relocalize on demand:", reloc, "tracked:", before)
+    assert reloc["class"] == "relocalize"
+    if reloc["ok"]:  # found: it must agree with tracking (the twin's robot keeps moving)
+        assert abs(reloc["pose"][0] - before[0]) + abs(reloc["pose"][1] - before[1]) < 1.0
     final_map = d.ask("map")
 
     rc, took = d.terminate()
