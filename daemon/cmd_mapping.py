@@ -102,6 +102,8 @@ def run_build(args: argparse.Namespace) -> int:
     res = build_map(scans, odo, params, _progress("map build", args.quiet))
     meta = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
             "scans": len(scans), "frame": "map = the log's first pose"}
+    if "alignment_to_reference" in res.report:
+        meta["alignment_to_reference"] = res.report["alignment_to_reference"]
     save_map(res.map, out / "map.json", meta)
     render_png(res.map, out / "map.png", res.poses)
     export_occupancy(res.map, out / "map")
@@ -136,7 +138,8 @@ def run_relocalize(args: argparse.Namespace) -> int:
     scans, _ = _read_log(args.log, args.lenient)
     if any(s.pose_ref is None for s in scans):
         raise UsageError("--log: scans carry no reference poses to score against")
-    res = relocalize_trials(lmap, scans, args.trials, args.seed,
+    align = _alignment(lmap.metadata.get("alignment_to_reference"))
+    res = relocalize_trials(lmap, scans, args.trials, args.seed, alignment=align,
                             progress=None if args.json else _progress("relocalize", False))
     if args.json:
         print(json.dumps(res))
@@ -145,3 +148,14 @@ def run_relocalize(args: argparse.Namespace) -> int:
               f"({100 * res['success_rate']:.1f} %), median {res['median_ms']:.1f} ms, "
               f"p95 {res['p95_ms']:.1f} ms")
     return 0
+
+
+def _alignment(value):
+    """The map's rigid alignment onto the reference frame, if the map file carries one."""
+    if value is None:
+        return None
+    try:
+        x, y, th = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise UsageError("--map: metadata.alignment_to_reference: expected 3 numbers") from None
+    return (x, y, th)

@@ -43,8 +43,10 @@ def test_intel_high_noise():
     res = build_map(scans, odo)
     r = res.report
     assert r["scans_processed"] == 910
-    # loose but meaningful: far better than dead reckoning, locally and globally
-    assert r["ate_trans_m"] < 0.3 * r["odometry"]["ate_trans_m"], r
+    # loose but meaningful: far better than dead reckoning, locally and globally (measured
+    # here: 0.10-0.17 m and 1.1-1.5 deg over noise seeds; dead reckoning 10-13 m)
+    assert r["ate_trans_m"] < 0.4 and r["ate_rot_deg"] < 3.0, r
+    assert r["ate_trans_m"] < 0.05 * r["odometry"]["ate_trans_m"], r
     assert r["rpe_trans_m"] < r["odometry"]["rpe_trans_m"], r
     assert r["rpe_rot_deg"] < r["odometry"]["rpe_rot_deg"], r
 
