@@ -173,9 +173,16 @@ def run_map_export(args: argparse.Namespace) -> int:
     reply = _ask(args, "map")
     out = Path(args.output or f"map.{args.format}")
     kw = {}
-    if args.resolution:
-        if args.format == "png":
+    if args.format == "png":
+        if args.resolution:
             kw["resolution"] = args.resolution
+        rows = _ask(args, "trajectory")["rows"]
+        if rows:  # the path the robot took, under the map
+            import numpy as np
+
+            kw["trajectory"] = np.asarray(rows, dtype=float)[:, 2:5]
+    elif args.format == "pgm" and args.resolution:
+        kw["resolution"] = args.resolution
     files = export(reply, args.format, out, **kw)
     print(" ".join(str(f) for f in files))
     return 0

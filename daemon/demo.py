@@ -149,6 +149,24 @@ def truth_error(rows: list, world: Any) -> dict:
     return out
 
 
+def map_error(segments, world: Any, alignment) -> dict:
+    """Distance of the map's segment end points (moved into the world frame by
+    ``alignment``) to the nearest true wall: how far the 2D map is from the building."""
+    seg = np.asarray(segments, dtype=float).reshape(-1, 4)
+    if not len(seg):
+        return {"map_segments": 0}
+    x, y, th = alignment
+    c, s = math.cos(th), math.sin(th)
+    p = np.concatenate([seg[:, :2], seg[:, 2:]]) @ np.array([[c, s], [-s, c]]) + [x, y]
+    w = world.segments
+    a, ab = w[:, :2], w[:, 2:] - w[:, :2]
+    t = np.clip(np.einsum("nmk,mk->nm", p[:, None] - a, ab) / np.einsum("mk,mk->m", ab, ab),
+                0.0, 1.0)
+    d = np.linalg.norm(p[:, None] - (a + t[..., None] * ab), axis=-1).min(axis=1)
+    return {"map_segments": int(len(seg)), "wall_dist_median_m": float(np.median(d)),
+            "wall_dist_p95_m": float(np.percentile(d, 95)), "wall_dist_max_m": float(d.max())}
+
+
 def resolve_config(cfg_path: Path, twins: dict[str, Twin], out: Path, run_dir: Path,
                    duration: float, epoch_ns: int) -> tuple[Path, dict]:
     raw = yaml.safe_load(cfg_path.read_text())
@@ -280,6 +298,8 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
                 [moved[:len(seg)], moved[len(seg):]], axis=1).tolist())
         else:
             world_map = map_reply
+        if "alignment" in err:
+            err.update(map_error(map_reply["segments"], world, err["alignment"]))
         files = []
         files += export(world_map, "png", out / "map.png", trajectory=aligned, reference=ref)
         files += export(map_reply, "ply", out / "map3d.ply")
@@ -359,7 +379,9 @@ def write_report(out: Path, report: dict) -> None:
                        ("rpe_trans_m", "RPE translation over ~1 m (m)"),
                        ("rpe_rot_deg", "RPE rotation over ~1 m (deg)"),
                        ("final_trans_m", "final pose translation error (m)"),
-                       ("final_rot_deg", "final pose rotation error (deg)")):
+                       ("final_rot_deg", "final pose rotation error (deg)"),
+                       ("wall_dist_median_m", "map: segment end to true wall, median (m)"),
+                       ("wall_dist_p95_m", "map: segment end to true wall, 95th pct (m)")):
         if key in t:
             lines.append(f"| {label} | {t[key]:.3f} |")
     lines += ["", f"Map: {report.get('segments')} segments, {report.get('planes')} planes. "

@@ -124,7 +124,7 @@ def export(map_reply: dict, fmt: str, path: Path, **kw) -> list[Path]:
     if fmt == "png":
         return export_png(map_reply, path, **kw)
     if fmt == "pgm":
-        return export_pgm(map_reply, path)
+        return export_pgm(map_reply, path, **kw)
     if fmt == "ply":
         return export_ply(map_reply, path)
     if fmt == "json":

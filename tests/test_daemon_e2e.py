@@ -11,7 +11,7 @@ import subprocess
 import sys
 
 import pytest
-from cgamap.daemon.demo import Driver, truth_error
+from cgamap.daemon.demo import Driver, map_error, truth_error
 from cgamap.daemon.export import read_ply_counts
 from cgamap.daemon.recording import read_messages
 from cgamap.drivers.messages import LaserScan, WheelTicks
@@ -34,7 +34,9 @@ def stack(tmp_path):
     base = start_twin("modbus-base")
     run = short_dir()
     daemons: list[DaemonProc] = []
+    # drive from the start: the laser twin's robot moves on the twin's clock from its start
     driver = Driver(base.url, get_world("loop"), laser.started_ns, GEOM)
+    driver.start()
 
     def daemon(**kw) -> DaemonProc:
         cfg = stack_config(laser, base, camera_world="loop", epoch_ns=laser.started_ns)
@@ -63,7 +65,6 @@ def test_end_to_end(stack):
     # READY waits for the devices to stream (up to supervisor.ready_timeout)
     first = {x["name"]: x["messages"] for x in d.ask("status")["devices"]}
     assert first["laser"] > 0 and first["base"] > 0
-    driver.start()
     assert wait_until(lambda: d.ask("status")["counts"].get("scans", 0) >= 60, 90), \
         d.log_text()
     st = d.ask("status")
@@ -95,6 +96,9 @@ def test_end_to_end(stack):
     print("pose error vs truth:", {k: v for k, v in err.items() if not k.startswith("_")})
     assert err["poses"] >= 60
     assert err["ate_trans_m"] < 0.15 and err["ate_rot_deg"] < 3.0
+    walls = map_error(d.ask("map")["segments"], get_world("loop"), err["alignment"])
+    print("map vs true walls:", walls)
+    assert walls["wall_dist_p95_m"] < 0.15  # no ghost walls
     driver.stop_event.set()
     driver.join(5)
     before = d.ask("status")["pose"]
@@ -129,7 +133,6 @@ def test_replay_of_a_recording(stack):
     daemon, driver, tmp = stack
     d = daemon()
     d.wait_ready()
-    driver.start()
     assert wait_until(lambda: d.ask("status")["counts"].get("scans", 0) >= 5, 60)
     rec = cli("record", "--socket", str(d.socket), "--duration", "4", str(tmp / "r.mcap"))
     assert rec.returncode == 0, rec.stderr
@@ -204,3 +207,12 @@ def test_3d_render_and_ply_of_a_small_map(tmp_path):
     assert read_ply_counts(tmp_path / "m.ply") == (12, 3)
     render_3d_png(reply, tmp_path / "m.png")
     assert (tmp_path / "m.png").stat().st_size > 1000
+
+
+def test_map_error_measures_distance_to_true_walls():
+    world = get_world("loop")
+    exact = map_error(world.segments, world, (0.0, 0.0, 0.0))
+    assert exact["wall_dist_max_m"] < 1e-9
+    shifted = map_error(world.segments + [0.0, 0.5, 0.0, 0.5], world, (0.0, 0.0, 0.0))
+    assert shifted["wall_dist_p95_m"] > 0.3
+    assert map_error(world.segments, world, (0.0, -0.5, 0.0))["wall_dist_p95_m"] > 0.3
