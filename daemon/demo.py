@@ -320,6 +320,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
         report.update({
             "truth": err, "segments": len(map_reply["segments"]),
             "planes": len(map_reply["planes"]), "counts": status["counts"],
+            "configurations": sorted(c["kind"] for c in map_reply.get("configurations", [])),
             "timing_ms": status.get("timing_ms"),
             "devices": {d["name"]: {k: d[k] for k in ("state", "restarts", "messages")}
                         for d in status["devices"]},
@@ -384,7 +385,10 @@ def write_report(out: Path, report: dict) -> None:
                        ("wall_dist_p95_m", "map: segment end to true wall, 95th pct (m)")):
         if key in t:
             lines.append(f"| {label} | {t[key]:.3f} |")
-    lines += ["", f"Map: {report.get('segments')} segments, {report.get('planes')} planes. "
+    kinds = report.get("configurations") or []
+    found = ", ".join(f"{kinds.count(k)} {k}" for k in sorted(set(kinds))) or "none"
+    lines += ["", f"Map: {report.get('segments')} segments, {report.get('planes')} planes; "
+              f"plane configurations found: {found}. "
               f"Daemon exit code {report.get('daemon_exit')} after SIGTERM in "
               f"{report.get('stop_s')} s; final checkpoint "
               f"{'valid' if report.get('checkpoint_ok') else 'MISSING'}.", ""]

@@ -534,7 +534,22 @@ class MappingLoop:
         seg = self.segments()
         return {"frame": "map", "pose": self.pose_list(),
                 "segments": np.round(seg, 4).tolist(), "planes": self.planes.as_list(),
-                "version": self.map_version}
+                "configurations": self.configurations(), "version": self.map_version}
+
+    def configurations(self) -> list[dict]:
+        """Corridors, stairways, doorways, workplaces among the map's planes (PRL figures),
+        indices into ``planes``; empty when the module or the planes are not there."""
+        if self.planes.m is None or not self.planes.planes:
+            return []
+        try:
+            from cgamap.mapping.configurations import find_configurations
+
+            found = find_configurations(self.planes.planes)
+        except Exception:  # noqa: BLE001 - an optional summary must not break `map`
+            log.exception("configurations failed")
+            return []
+        return [{"kind": c.kind, "planes": [int(i) for i in c.planes], "params": c.params}
+                for c in found]
 
     def state(self) -> dict:
         return {"pose": self.current_pose(),
