@@ -49,6 +49,7 @@ class RelocParams:
     min_score: float = 0.5            # "not found" under this fraction of inlier points
     field_resolution: float = 0.05
     verify_points: int = 40
+    endpoint_lines: int = 1           # scan lines whose end points propose corridor positions
     crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
     crossing_step: float = 0.08       # free-space samples along each beam (m)
 
@@ -158,7 +159,10 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         pair = (dphi < tol) & (len_g[:, None] > 0.5 * len_l[None, :] - 0.3)
         # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
         sgn = np.sign(n_g @ n_l.T)
-        Ts = []
+        # exact rotation residual of every pairing: each candidate gets the rotation its own
+        # two line pairs say (the histogram peak is only good to a bin or so)
+        delta = _wrap(2 * (phi_g[:, None] - phi_l[None, :])) / 2
+        Ts, Ds = [], []
         k = len(ra)
         for i1 in range(k):          # loops over the few scan lines, not over points
             for i2 in range(i1 + 1, k):
@@ -185,27 +189,36 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
                                   P.overlap_slack)
                 T = np.stack([tx[good], ty[good]], -1)
                 Ts.append(T)
-        if sum(len(t) for t in Ts) == 0:
-            # only parallel lines (a corridor): the position along them comes from end
-            # points -- align each end of the longest scan lines with each end of the map
-            # segments they may lie on
-            for i1 in range(min(2, k)):
-                g = np.nonzero(pair[:, i1])[0]
-                if not len(g):
-                    continue
-                d = c_g[g] - sgn[g, i1] * c_l[i1]
-                u = np.column_stack([-n_g[g, 1], n_g[g, 0]])
-                ends_g = [np.sum(lmap.a[g] * u, -1), np.sum(lmap.b[g] * u, -1)]
-                ends_l = [u @ ra[i1], u @ rb[i1]]
-                for eg in ends_g:
-                    for el in ends_l:
-                        Ts.append(d[:, None] * n_g[g] + (eg - el)[:, None] * u)
+                w1, w2 = len_l[i1], len_l[i2]
+                D = (w1 * delta[g1, i1][:, None] + w2 * delta[g2, i2][None, :]) / (w1 + w2)
+                Ds.append(D[good])
+        # position along parallel lines (a corridor) from end points: align each end of the
+        # longest scan lines with each end of the map segments they may lie on.  Always
+        # tried: a short cross piece that would fix it is often missing from the map.
+        Tf, Df = [], []
+        for i1 in range(min(P.endpoint_lines, k)):
+            g = np.nonzero(pair[:, i1])[0]
+            if not len(g):
+                continue
+            d = c_g[g] - sgn[g, i1] * c_l[i1]
+            u = np.column_stack([-n_g[g, 1], n_g[g, 0]])
+            ends_g = [np.sum(lmap.a[g] * u, -1), np.sum(lmap.b[g] * u, -1)]
+            ends_l = [u @ ra[i1], u @ rb[i1]]
+            for eg in ends_g:
+                for el in ends_l:
+                    Tf.append(d[:, None] * n_g[g] + (eg - el)[:, None] * u)
+                    Df.append(delta[g, i1])
+        if Tf:
+            Tf_, Df_ = np.concatenate(Tf), np.concatenate(Df)
+            cand_T.append(Tf_)
+            cand_R.append(th + Df_)
         if not Ts:
             continue
         T = np.concatenate(Ts)
+        D = np.concatenate(Ds)
         cell = np.floor((T - lo) / P.grid).astype(int)
         inside = np.all((cell >= 0) & (cell < gshape), axis=-1)
-        T, cell = T[inside], cell[inside]
+        T, D, cell = T[inside], D[inside], cell[inside]
         if not len(T):
             continue
         flat = cell[:, 0] * gshape[1] + cell[:, 1]
@@ -215,8 +228,9 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         # the hypothesis of a cell: mean of the intersections that fell in it
         sums_x = np.bincount(flat, T[:, 0], votes.size)[top]
         sums_y = np.bincount(flat, T[:, 1], votes.size)[top]
+        sums_d = np.bincount(flat, D, votes.size)[top]
         cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
-        cand_R.append(np.full(len(top), th))
+        cand_R.append(th + sums_d / votes[top])
     if not cand_T:
         return RelocResult(False, None, 0.0, [])
     T = np.concatenate(cand_T)
