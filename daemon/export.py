@@ -38,7 +38,7 @@ def export_pgm(map_reply: dict, path: Path, resolution: float = 0.05) -> list[Pa
                                  resolution=resolution))
 
 
-def ply_mesh(map_reply: dict, wall_height: float = 2.0) -> tuple[np.ndarray, np.ndarray,
+def ply_mesh(map_reply: dict, wall_height: float = 2.5) -> tuple[np.ndarray, np.ndarray,
                                                                  np.ndarray]:
     """(vertices (n, 3), quads (m, 4) vertex indices, colours (m, 3) uint8)."""
     seg = np.asarray(map_reply["segments"], dtype=float).reshape(-1, 4)
@@ -55,7 +55,7 @@ def ply_mesh(map_reply: dict, wall_height: float = 2.0) -> tuple[np.ndarray, np.
     return quads.reshape(-1, 3), np.arange(4 * len(quads)).reshape(-1, 4), colours
 
 
-def export_ply(map_reply: dict, path: Path, wall_height: float = 2.0) -> list[Path]:
+def export_ply(map_reply: dict, path: Path, wall_height: float = 2.5) -> list[Path]:
     v, f, c = ply_mesh(map_reply, wall_height)
     head = ("ply\nformat ascii 1.0\ncomment cgamap: 2D segments as virtual walls (grey), "
             f"3D planes (blue)\nelement vertex {len(v)}\nproperty float x\nproperty float y\n"
@@ -69,7 +69,7 @@ def export_ply(map_reply: dict, path: Path, wall_height: float = 2.0) -> list[Pa
 
 
 def render_3d_png(map_reply: dict, path: Path, size: tuple[int, int] = (960, 640),
-                  wall_height: float = 2.0, azimuth_deg: float = -60.0,
+                  wall_height: float = 2.5, azimuth_deg: float = -60.0,
                   elevation_deg: float = 35.0) -> list[Path]:
     """An oblique view of the 3D map: virtual walls (grey) and camera planes (blue), painted
     far to near (orthographic projection, Lambert shading)."""
@@ -98,7 +98,13 @@ def render_3d_png(map_reply: dict, path: Path, size: tuple[int, int] = (960, 640
     for i in np.argsort(-depth):                         # far first
         poly = px[f[i]].reshape(-1, 1, 2)
         col = tuple(int(x) for x in (c[i][::-1] * shade[i]).clip(0, 255))  # BGR
-        cv2.fillPoly(img, [poly], col, cv2.LINE_AA)
+        x0, y0 = np.maximum(poly.reshape(-1, 2).min(0), 0)
+        x1, y1 = poly.reshape(-1, 2).max(0) + 1
+        roi = img[y0:y1, x0:x1]  # blend in the quad's box only: camera planes see-through
+        layer = roi.copy()
+        cv2.fillPoly(layer, [poly - [x0, y0]], col, cv2.LINE_AA)
+        alpha = 0.9 if c[i][0] == c[i][1] else 0.55
+        img[y0:y1, x0:x1] = cv2.addWeighted(layer, alpha, roi, 1 - alpha, 0)
         cv2.polylines(img, [poly], True, (60, 60, 60), 1, cv2.LINE_AA)
     if not cv2.imwrite(str(path), img):
         raise OSError(f"{path}: could not write PNG")
