@@ -131,17 +131,6 @@ def _replay_intel(max_scans: int = 400) -> dict:
         shutil.rmtree(run, ignore_errors=True)
 
 
-def run() -> dict:
-    return {"checkpoint": _checkpoint_cost(), "query": _query_latency(),
-            "replay_intel": _replay_intel(), "sim_stack": _sim_stack()}
-
-
-if __name__ == "__main__":
-    import json
-
-    print(json.dumps(run(), indent=1))
-
-
 def _sim_stack(duration: float = 15.0) -> dict:
     """The demo stack (Hokuyo + base twins, no camera) for a short drive."""
     from cgamap.daemon.demo import run_demo
@@ -159,3 +148,15 @@ def _sim_stack(duration: float = 15.0) -> dict:
                 "sigterm_to_exit_s": rep.get("stop_s")}
     finally:
         shutil.rmtree(out, ignore_errors=True)
+
+
+def run() -> dict:
+    return {"checkpoint": _checkpoint_cost(), "query": _query_latency(),
+            "replay_intel": _replay_intel(), "sim_stack": _sim_stack()}
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(run(), indent=1))
+
