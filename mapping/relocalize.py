@@ -49,6 +49,7 @@ class RelocParams:
     min_score: float = 0.5            # "not found" under this fraction of inlier points
     field_resolution: float = 0.05
     verify_points: int = 40
+    fit_weight: float = 0.0           # ranking = score + fit_weight * fit (neutral on Intel)
     endpoint_lines: int = 1           # scan lines whose end points propose corridor positions
     crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
     crossing_step: float = 0.08       # free-space samples along each beam (m)
@@ -58,6 +59,7 @@ class RelocParams:
 class Hypothesis:
     pose: np.ndarray   # (x, y, theta) of the laser in the map frame
     score: float       # fraction of scan points near map segments
+    fit: float = 0.0   # soft version (1 - (d / inlier)^2 per point), breaks near-ties
 
 
 @dataclass
@@ -250,13 +252,15 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         corr = correct_pose(seg, lmap.a, lmap.b, pose0, 0.0, cp)
         pose = corr.pose
         sc = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist)[0])
+        fit = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist,
+                           soft=True)[0])
         if P.crossing_weight:
             # negative evidence: beams that would pass through mapped walls (off by default:
             # maps built from real logs keep clutter in free space, and it cost more than it
             # gained on the Intel log)
             sc -= P.crossing_weight * crossing_fraction(field, seg.points, pose)
-        hyps.append(Hypothesis(pose, sc))
-    hyps.sort(key=lambda h: -h.score)
+        hyps.append(Hypothesis(pose, sc, fit))
+    hyps.sort(key=lambda h: -(h.score + P.fit_weight * h.fit))
     if not hyps or hyps[0].score < P.min_score:
         return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
@@ -278,14 +282,18 @@ def _overlaps(ga: np.ndarray, gb: np.ndarray, la: np.ndarray, lb: np.ndarray, tx
 
 
 def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
-           inlier: float) -> np.ndarray:
-    """Fraction of points within ``inlier`` of the map for each pose hypothesis (T, th)."""
+           inlier: float, soft: bool = False) -> np.ndarray:
+    """Fraction of points within ``inlier`` of the map for each pose hypothesis (T, th);
+    with ``soft``, each point counts 1 - (d / inlier)^2 instead of 1 (ties between symmetric
+    places go to the pose that fits tighter)."""
     if not len(pts):
         return np.zeros(len(T))
     c, s = np.cos(th)[:, None], np.sin(th)[:, None]
     gx = c * pts[None, :, 0] - s * pts[None, :, 1] + T[:, None, 0]
     gy = s * pts[None, :, 0] + c * pts[None, :, 1] + T[:, None, 1]
     d = field.lookup(np.stack([gx, gy], -1))
+    if soft:
+        return np.mean(np.maximum(0.0, 1.0 - (d / inlier) ** 2), axis=-1)
     return np.mean(d < inlier, axis=-1)
 
 

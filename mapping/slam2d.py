@@ -63,7 +63,8 @@ class MapperParams:
     correction: CorrectionParams = field(default_factory=CorrectionParams)
     map: MapParams = field(default_factory=MapParams)
     loop: LoopParams = field(default_factory=LoopParams)
-    reloc: RelocParams = field(default_factory=lambda: RelocParams(min_score=0.6, refine=4))
+    reloc: RelocParams = field(default_factory=lambda: RelocParams(
+        min_score=0.6, refine=4, endpoint_lines=0))  # loop closures: no corridor guesses
     mount: tuple[float, float, float] | None = None  # laser pose in the base frame (M_BL)
     seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)
     odo_sigma: tuple[float, float, float, float] = (0.05, 0.10, 0.02, 0.03)  # unmatched step
