@@ -302,6 +302,7 @@ class MappingLoop:
         self.map_version = 0
         self.timing = {"scan_ms": 0.0, "frame_ms": 0.0}
         self._last_scan: LaserScan | None = None
+        self._map_segments = 0
         self.odometry_expected = odom_dev is not None
         self.scan_odometry = False
 
@@ -394,6 +395,10 @@ class MappingLoop:
         self.map_version += 1
         self.timing["scan_ms"] = 0.9 * self.timing["scan_ms"] + 100 * (time.perf_counter() - t0)
         self._event("pose", {"pose": self.pose_list(), "quality": q, "segments": nseg})
+        n_map = len(self.segments())
+        if n_map != self._map_segments:
+            self._map_segments = n_map
+            self._event("map", {"segments": n_map, "version": self.map_version})
 
     def _skip(self, scan: LaserScan, odom: np.ndarray) -> bool:
         """Skip a scan taken too soon after the last mapped one, or with no motion since."""

@@ -257,6 +257,9 @@ class Daemon:
             return fn(req)
         except (ValueError, TypeError, KeyError) as exc:
             return {"class": "error", "error": f"{req['cmd']}: {exc}"}
+        except Exception as exc:  # noqa: BLE001 - a failing query must not cost the client
+            log.exception("command %s failed", req["cmd"])
+            return {"class": "error", "error": f"{req['cmd']}: internal error: {exc}"}
 
     def cmd_version(self, req: dict) -> dict:
         from cgamap.daemon.cli import package_version
