@@ -87,7 +87,7 @@ def test_cli_build_and_relocalize(short_log, tmp_path, capsys):
     res = json.loads(capsys.readouterr().out)
     for k in ("trials", "successes", "success_rate", "median_ms", "p95_ms"):
         assert k in res
-    assert res["trials"] == 20 and res["success_rate"] >= 0.2
+    assert res["trials"] == 20 and res["success_rate"] >= 0.6  # measured 0.8
 
 
 def test_cli_usage_errors(tmp_path, capsys):
