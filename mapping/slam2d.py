@@ -50,6 +50,8 @@ class LoopParams:
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations
     quiet_after: int = 4          # scans without attempts after a closure that agreed
+    sweep_every: int = 2          # after the run: tracking closures on every n-th scan (0: off)
+    sweep_radius: float = 2.0     # ... with the nearest earlier visit within this (m)
     max_std: float = 0.06         # tracking closure: translation std in every direction (m)
     tracking_score: float = 0.75  # tracking closure: fraction of scan points on the submap
     tracking: CorrectionParams = field(default_factory=lambda: CorrectionParams(
@@ -209,16 +211,9 @@ class Mapper:
                 picks.append(int(older[0]))
         for j in picks:
             tried.append(int(j))
-            sel = (np.abs(self.map.c_node - j) <= LP.window) & (
-                self.map.c_node <= i - LP.min_separation)
-            if sel.sum() < 3:
+            sub = self._submap(X, j, i - LP.min_separation)
+            if sub is None:
                 continue
-            nodes = self.map.c_node[sel]
-            rel = relative(X[j], X[nodes])  # submap scans in j's frame
-            c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
-            R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-            sub = LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
-                          np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
             guess = relative(X[j], X[i])
             best = self._closure_by_tracking(seg, sub, guess)
             if best is None:
@@ -253,7 +248,58 @@ class Mapper:
             self.last_loop = i
         return added
 
-    def _closure_by_tracking(self, seg: Segments, sub: LineMap, guess: np.ndarray):
+    def _submap(self, X: np.ndarray, j: int, last: int) -> LineMap | None:
+        """The segments seen from scans j +- window (none after ``last``), in j's frame."""
+        LP = self.params.loop
+        sel = (np.abs(self.map.c_node - j) <= LP.window) & (self.map.c_node <= last)
+        if sel.sum() < 3:
+            return None
+        nodes = self.map.c_node[sel]
+        rel = relative(X[j], X[nodes])
+        c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
+        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        return LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
+                       np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
+
+    def _sweep_closures(self) -> int:
+        """After the run: with the optimised poses every revisit is close to its earlier
+        visit, so the cheap tracking closure is tried on every ``sweep_every``-th scan
+        against its nearest earlier visit; returns the edges added."""
+        LP = self.params.loop
+        m = self.map
+        X = self.poses
+        order = np.argsort(m.c_node, kind="stable")
+        nodes, starts = np.unique(m.c_node[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        added = 0
+        for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # per scan, not per point
+            i = int(node)
+            if i <= LP.min_separation or i % LP.sweep_every or s1 - s0 < 2:
+                continue
+            old = X[: i - LP.min_separation + 1]
+            dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
+            j = int(np.argmin(dist))
+            if dist[j] > LP.sweep_radius:
+                continue
+            sub = self._submap(X, j, i - LP.min_separation)
+            if sub is None:
+                continue
+            idx = order[s0:s1]
+            k = len(idx)
+            seg = Segments(m.c_a[idx], m.c_b[idx], m.c_n[idx].astype(int), np.zeros(k),
+                           m.c_cent[idx], m.c_scat[idx], np.zeros((k, 2, 2)))
+            best = self._closure_by_tracking(seg, sub, relative(X[j], X[i]), points=False)
+            if best is None:
+                continue
+            st, sr = LP.sigma
+            self.graph.add_edge(j, i, best.pose, np.diag([st ** -2, st ** -2, sr ** -2]),
+                                loop=True)
+            added += 1
+        self.loops += added
+        return added
+
+    def _closure_by_tracking(self, seg: Segments, sub: LineMap, guess: np.ndarray,
+                             points: bool = True):
         """The cheap way first: point-to-line correction from the current estimate with wide
         gates; accepted when it fixes the pose in every direction and the scan fits."""
         LP = self.params.loop
@@ -261,6 +307,10 @@ class Mapper:
         std = np.sqrt(np.linalg.eigvalsh(corr.cov[:2, :2]).max())
         if std > LP.max_std or corr.matched_fraction < 0.5:
             return None
+        if not points:  # segments only (the sweep): their matched share is the score
+            if corr.matched_fraction < LP.tracking_score or corr.rms > 0.05:
+                return None
+            return Hypothesis(corr.pose, corr.matched_fraction)
         sc = inlier_fraction(seg.points, corr.pose, sub.a, sub.b, self.params.reloc.inlier_dist)
         if sc < LP.tracking_score:
             return None
@@ -281,6 +331,8 @@ class Mapper:
         align every scan with the finished map and rebuild it; returns the laser poses."""
         if self.params.loop.enabled and self.loops:
             self.optimize(final=True)
+            if self.params.loop.sweep_every and self._sweep_closures():
+                self.optimize(final=True)
         for _ in range(self.params.refine_passes):
             self.refine()
         return self.poses
