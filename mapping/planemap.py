@@ -28,7 +28,7 @@ from cgamap.cga import (
 from .planes import plane_basis
 
 
-@dataclass
+@dataclass(eq=False)  # identity, not field-wise ==: fields are numpy arrays
 class MapPlane:
     """A plane of the map: n.x = rho (rho >= 0) with its extent polygon in the plane."""
 
@@ -206,9 +206,10 @@ class PlaneMap:
             if self.same_surface(mp, obs):
                 self._absorb(mp, obs)
                 # absorbing can make it touch another map plane: fold those in too
-                for other in [q for q in self.planes if q is not mp and self.same_surface(mp, q)]:
+                folded = [q for q in self.planes if q is not mp and self.same_surface(mp, q)]
+                for other in folded:
                     self._absorb(mp, other)
-                    self.planes.remove(other)
+                self.planes = [q for q in self.planes if not any(q is f for f in folded)]
                 return mp.id
         return self._add(obs)
 

@@ -249,3 +249,23 @@ def test_place_recognition_on_a_revisit_with_the_robot_turned(tmp_path):
     # a corridor of another width is a new place
     wide = scenes.corridor(width=3.2, seed=5)[0] - [3, 0, 0]
     assert db.recognise(_planes(wide, 0.015))[0] is None
+
+
+def test_merge_folds_a_bridged_pair_without_comparing_arrays():
+    """An observation that touches two separate map patches of one wall folds them into one
+    (regression: list.remove compared numpy fields with == and raised)."""
+    from cgamap.mapping.planemap import PlaneMap
+    from cgamap.mapping.planes import ransac_planes
+
+    def patch(x0, x1):
+        xs = np.linspace(x0, x1, 40)
+        zs = np.linspace(0.0, 2.0, 40)
+        X, Z = np.meshgrid(xs, zs)
+        return np.stack([X.ravel(), np.full(X.size, 3.0), Z.ravel()], axis=1)
+
+    m = PlaneMap()
+    m.integrate(ransac_planes(patch(0.0, 1.0))[:1])
+    m.integrate(ransac_planes(patch(2.0, 3.0))[:1])
+    assert len(m.planes) == 2  # a 1 m gap: two patches of the wall
+    m.integrate(ransac_planes(patch(0.9, 2.1))[:1])
+    assert len(m.planes) == 1
