@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from cgamap.cga import angle_diff
 
-from .matching import line_normals, match_candidates
+from .matching import LineIndex, match_index
 from .segments import Segments
 
 _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate quadratics exactly
@@ -57,7 +57,8 @@ def _transform(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 
 def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicted,
-                 step: float = 1.0, params: CorrectionParams | None = None) -> Correction:
+                 step: float = 1.0, params: CorrectionParams | None = None,
+                 map_index: LineIndex | None = None) -> Correction:
     """Corrected laser pose for segments ``seg_l`` (laser frame) against map lines a-b,
     starting from the odometry prediction ``predicted`` (x, y, theta) after a step of
     ``step`` metres."""
@@ -80,16 +81,17 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
         return Correction(x, np.linalg.inv(P), 0.0, float(L.sum()), 0.0, matches)
     # map segments anywhere near the scan under the widest gate; later passes look only there
     ga, gb = _transform(seg_l.a, x), _transform(seg_l.b, x)
-    ok0, _ = match_candidates(ga, gb, map_a, map_b, np.deg2rad(max(params.angle_gates_deg)),
-                              max(params.gates) * 1.5)
+    index = map_index if map_index is not None else LineIndex.of(map_a, map_b)
+    ok0, _ = match_index(ga, gb, index, np.deg2rad(max(params.angle_gates_deg)),
+                         max(params.gates) * 1.5)
     near = np.nonzero(ok0.any(axis=0))[0]
     if not len(near):
         return Correction(x, np.linalg.inv(P), 0.0, float(L.sum()), 0.0, matches)
-    map_a, map_b = map_a[near], map_b[near]
-    mn, mc = line_normals(map_a, map_b)
+    sub = index.subset(near)
+    mn, mc = sub.n, sub.c
     for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
         ga, gb = _transform(seg_l.a, x), _transform(seg_l.b, x)
-        ok, cost = match_candidates(ga, gb, map_a, map_b, np.deg2rad(ag), gate)
+        ok, cost = match_index(ga, gb, sub, np.deg2rad(ag), gate)
         best = np.argmin(cost, axis=1)
         has = ok[np.arange(k), best]
         matches = np.where(has, best, -1)

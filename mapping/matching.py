@@ -16,6 +16,8 @@ distance from the origin).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from cgamap.cga import angle_diff
 
@@ -106,6 +108,28 @@ def overlap_gap(a1, b1, a2, b2) -> np.ndarray:
     return np.maximum(lo - L[None, :], -hi)
 
 
+@dataclass
+class LineIndex:
+    """Per-segment quantities of a fixed segment set (the map side of a match), computed
+    once and reused across the correction's iterations."""
+
+    a: np.ndarray
+    b: np.ndarray
+    centre: np.ndarray
+    half: np.ndarray     # half lengths (the eq. 12 sphere radii)
+    n: np.ndarray        # unit normals
+    c: np.ndarray        # offsets: n . x = c
+
+    @classmethod
+    def of(cls, a: np.ndarray, b: np.ndarray) -> LineIndex:
+        n, c = line_normals(a, b)
+        return cls(a, b, 0.5 * (a + b), 0.5 * np.hypot(*(b - a).T), n, c)
+
+    def subset(self, idx) -> LineIndex:
+        return LineIndex(self.a[idx], self.b[idx], self.centre[idx], self.half[idx],
+                         self.n[idx], self.c[idx])
+
+
 def match_candidates(a1, b1, a2, b2, max_angle: float, max_dist: float,
                      margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Candidate matrix (k1, k2) and its cost (mean |end point distance| + angle term).
@@ -114,19 +138,34 @@ def match_candidates(a1, b1, a2, b2, max_angle: float, max_dist: float,
     ``margin``, default ``max_dist``), the lines' angle differs by less than ``max_angle``, and
     both end points of segment 1 lie within ``max_dist`` of line 2.
     """
+    return match_index(a1, b1, LineIndex.of(a2, b2), max_angle, max_dist, margin)
+
+
+def match_index(a1, b1, idx: LineIndex, max_angle: float, max_dist: float,
+                margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`match_candidates` against a prepared :class:`LineIndex`."""
     margin = max_dist if margin is None else margin
-    k1, k2 = len(a1), len(a2)
+    k1, k2 = len(a1), len(idx.a)
     if k1 == 0 or k2 == 0:
         return np.zeros((k1, k2), bool), np.zeros((k1, k2))
-    near = spheres_touch(a1, b1, a2, b2, margin)
     d1 = b1 - a1
-    d1 = d1 / np.maximum(np.hypot(*d1.T), 1e-12)[:, None]
-    n2, c2 = line_normals(a2, b2)
+    L1 = np.hypot(*d1.T)
+    # eq. (15) + containment through the sphere inner products (see spheres_touch)
+    c1 = 0.5 * (a1 + b1)
+    r1 = 0.5 * L1 + margin
+    r2 = idx.half + margin
+    dx = c1[:, None, 0] - idx.centre[None, :, 0]
+    dy = c1[:, None, 1] - idx.centre[None, :, 1]
+    d2 = dx * dx + dy * dy
+    R1, R2 = (r1 * r1)[:, None], (r2 * r2)[None, :]
+    s12 = 0.5 * (R1 + R2 - d2)
+    near = (s12 * s12 - R1 * R2 <= 1e-12 * np.maximum(1.0, R1 * R2)) | (
+        d2 <= (r1[:, None] - r2[None, :]) ** 2)
+    d1 = d1 / np.maximum(L1, 1e-12)[:, None]
     # |sin| of the undirected angle between the lines: d1 . n2 (n2 is d2 turned by 90 deg)
-    sin_ang = np.abs(d1 @ n2.T)
-    da = a1 @ n2.T - c2[None, :]
-    db = b1 @ n2.T - c2[None, :]
-    ada, adb = np.abs(da), np.abs(db)
+    sin_ang = np.abs(d1 @ idx.n.T)
+    ada = np.abs(a1 @ idx.n.T - idx.c[None, :])
+    adb = np.abs(b1 @ idx.n.T - idx.c[None, :])
     ok = near & (sin_ang < np.sin(max_angle)) & (ada < max_dist) & (adb < max_dist)
     cost = 0.5 * (ada + adb) + 0.5 * sin_ang
     return ok, np.where(ok, cost, np.inf)

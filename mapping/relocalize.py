@@ -29,7 +29,7 @@ import numpy as np
 
 from .correction import CorrectionParams, correct_pose
 from .linemap import LineMap
-from .matching import line_normals
+from .matching import LineIndex, line_normals
 from .segments import Segments
 
 
@@ -240,6 +240,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     scores = _score(field, pts, T, th, P.coarse_dist)
     best = np.argsort(-scores)[: max(P.refine * 3, P.refine)]
     hyps: list[Hypothesis] = []
+    index = LineIndex.of(lmap.a, lmap.b)
     cp = CorrectionParams(prior_trans=0.3, prior_trans_per_m=0.0, prior_rot=0.1,
                           prior_rot_per_m=0.0)
     for b in best:
@@ -249,7 +250,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             continue
         if len(hyps) >= P.refine:
             break
-        corr = correct_pose(seg, lmap.a, lmap.b, pose0, 0.0, cp)
+        corr = correct_pose(seg, lmap.a, lmap.b, pose0, 0.0, cp, index)
         pose = corr.pose
         sc = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist)[0])
         fit = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist,

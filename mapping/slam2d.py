@@ -15,6 +15,7 @@ import numpy as np
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_pose
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
+from .matching import LineIndex
 from .posegraph import PoseGraph, relative, wrap
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize
 from .segments import SegmentParams, Segments, extract_segments
@@ -348,11 +349,12 @@ class Mapper:
         nodes, starts = np.unique(m.c_node[order], return_index=True)
         ends = np.append(starts[1:], len(order))
         cp = self.params.refine_correction
+        index = LineIndex.of(m.a, m.b)
         for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # one correction per scan
             idx = order[s0:s1]
             k = len(idx)
             seg = Segments(m.c_a[idx], m.c_b[idx], m.c_n[idx].astype(int), np.zeros(k),
                            m.c_cent[idx], m.c_scat[idx], np.zeros((k, 2, 2)))
-            X[node] = correct_pose(seg, m.a, m.b, X[node], 0.0, cp).pose
+            X[node] = correct_pose(seg, m.a, m.b, X[node], 0.0, cp, index).pose
         self.graph.poses = list(X)
         refresh(m, X)
