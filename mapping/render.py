@@ -52,8 +52,10 @@ def render_png(lmap: LineMap, path: str | Path, trajectory: np.ndarray | None = 
 
 def export_occupancy(lmap: LineMap, stem: str | Path, resolution: float = 0.05,
                      border: float = 1.0) -> tuple[Path, Path]:
-    """Occupancy image ``stem.pgm`` (walls 0 = occupied, 254 = free/unknown as 205 is
-    unknown) and ``stem.yaml`` with the map_server fields; returns both paths."""
+    """Occupancy image ``stem.pgm`` and ``stem.yaml`` in the ROS map_server convention
+    (negate 0: 0 = occupied, 254 = free, 205 = unknown; origin = world pose of the lower-left
+    pixel).  A line map knows its walls, not the free space between them: walls are drawn
+    occupied on an unknown background.  Returns both paths."""
     stem = Path(stem)
     allp = np.concatenate([lmap.a, lmap.b]) if len(lmap) else np.zeros((1, 2))
     lo, size = _frame(allp, resolution, border)

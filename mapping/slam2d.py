@@ -70,6 +70,7 @@ class MapperParams:
         min_score=0.6, refine=4, endpoint_lines=0))  # loop closures: no corridor guesses
     mount: tuple[float, float, float] | None = None  # laser pose in the base frame (M_BL)
     seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)
+    seq_from_cov: bool = False  # add the correction's covariance to seq_sigma
     odo_sigma: tuple[float, float, float, float] = (0.05, 0.10, 0.02, 0.03)  # unmatched step
     # online odometry calibration: heading drift per metre and translation scale, learnt from
     # the corrections of well-matched steps (exponential average with this weight)
@@ -159,11 +160,20 @@ class Mapper:
         i = self.graph.add_node(pose)
         if corr is not None and corr.matched_fraction > 0.3:
             st, sr = P.seq_sigma
+            if P.seq_from_cov:
+                # the correction's own covariance, in the previous pose's frame: a corridor
+                # step is only known across the corridor
+                c, s_ = np.cos(prev[2]), np.sin(prev[2])
+                Rt = np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]])
+                cov = Rt @ corr.cov @ Rt.T + np.diag([st ** 2, st ** 2, sr ** 2])
+                info = np.linalg.inv(cov)
+            else:
+                info = np.diag([st ** -2, st ** -2, sr ** -2])
         else:
             a, b, c, d = P.odo_sigma
             st, sr = a + b * step, c + d * step
-        self.graph.add_edge(i - 1, i, relative(prev, pose), np.diag([st ** -2, st ** -2,
-                                                                       sr ** -2]))
+            info = np.diag([st ** -2, st ** -2, sr ** -2])
+        self.graph.add_edge(i - 1, i, relative(prev, pose), info)
         loops, optimized = 0, False
         if P.loop.enabled:
             loops = self._close_loops(i, seg)
