@@ -37,7 +37,8 @@ def invert(p) -> np.ndarray:
 class LoopParams:
     enabled: bool = True
     every: int = 3                # try closing loops on every n-th scan
-    min_separation: int = 25      # scans between a node and the visits it may close with
+    min_separation: int = 10      # scans between a node and the visits it may close with
+    min_travel: float = 12.0      # ... and metres of travel (dense and sparse logs alike)
     radius: float = 6.0           # look for earlier visits within this distance (m)
     candidates: int = 2           # earlier visits tried per scan (nearest, nearest older)
     older_gap: int = 50           # "older" means this many scans before the nearest visit
@@ -104,6 +105,7 @@ class Mapper:
         self.loops = 0
         self.optimizations = 0
         self.last_loop = -10 ** 9
+        self.travel: list[float] = []   # odometry distance from the start, per node
         self.calib_n = 0
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
@@ -136,6 +138,7 @@ class Mapper:
         if self.last_odom is None:
             pose = self._laser(self.initial)
             i = self.graph.add_node(pose)
+            self.travel.append(0.0)
             self.last_odom = odom_l
             self._merge(seg, i, None)
             return StepResult(pose, len(seg), None)
@@ -158,6 +161,7 @@ class Mapper:
                 self.drift_per_m += a * (float(wrap(raw[2] - got[2])) / d_odo - self.drift_per_m)
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
+        self.travel.append(self.travel[-1] + d_odo)
         if corr is not None and corr.matched_fraction > 0.3:
             st, sr = P.seq_sigma
             if P.seq_from_cov:
@@ -200,14 +204,15 @@ class Mapper:
         that visit's frame) by Hough-domain relocalisation (§V), so drift of metres and
         degrees is still caught; an unambiguous, well-scoring result becomes a loop edge."""
         LP = self.params.loop
-        if i <= LP.min_separation or len(seg) < 2 or not len(self.map.c_node):
+        last = self._last_old(i)
+        if last < 0 or len(seg) < 2 or not len(self.map.c_node):
             return 0
         if i % LP.every:
             return 0
         if i - self.last_loop <= LP.quiet_after and not self.pending:
             return 0  # just closed with a small disagreement: still on the old map
         X = self.poses
-        old = X[: i - LP.min_separation + 1]
+        old = X[: last + 1]
         dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
         order = np.argsort(dist)
         tried, added = [], 0
@@ -222,7 +227,7 @@ class Mapper:
                 picks.append(int(older[0]))
         for j in picks:
             tried.append(int(j))
-            sub = self._submap(X, j, i - LP.min_separation)
+            sub = self._submap(X, j, last)
             if sub is None:
                 continue
             guess = relative(X[j], X[i])
@@ -259,6 +264,14 @@ class Mapper:
             self.last_loop = i
         return added
 
+    def _last_old(self, i: int) -> int:
+        """The newest node that node i may close a loop with (-1: none yet): at least
+        ``min_separation`` scans and ``min_travel`` metres of odometry back."""
+        LP = self.params.loop
+        travel = np.asarray(self.travel)
+        by_dist = int(np.searchsorted(travel, travel[i] - LP.min_travel, side="right")) - 1
+        return min(by_dist, i - LP.min_separation)
+
     def _submap(self, X: np.ndarray, j: int, last: int) -> LineMap | None:
         """The segments seen from scans j +- window (none after ``last``), in j's frame."""
         LP = self.params.loop
@@ -285,14 +298,15 @@ class Mapper:
         added = 0
         for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # per scan, not per point
             i = int(node)
-            if i <= LP.min_separation or i % LP.sweep_every or s1 - s0 < 2:
+            last = self._last_old(i)
+            if last < 0 or i % LP.sweep_every or s1 - s0 < 2:
                 continue
-            old = X[: i - LP.min_separation + 1]
+            old = X[: last + 1]
             dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
             j = int(np.argmin(dist))
             if dist[j] > LP.sweep_radius:
                 continue
-            sub = self._submap(X, j, i - LP.min_separation)
+            sub = self._submap(X, j, last)
             if sub is None:
                 continue
             idx = order[s0:s1]
