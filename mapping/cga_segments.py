@@ -18,7 +18,6 @@ import numpy as np
 from cgamap.cga import (
     Multivector,
     apply,
-    apply_points,
     blade_index,
     einf,
     hough2d_from_points,
@@ -114,13 +113,6 @@ def pair_endpoints(PP: Multivector) -> tuple[np.ndarray, np.ndarray]:
 def sphere_centre_radius_2d(S: Multivector) -> tuple[np.ndarray, np.ndarray]:
     c, r = sphere_center_radius(S)
     return c[..., :2], r
-
-
-def transform_points(M: Multivector, p: np.ndarray) -> np.ndarray:
-    """(n, 2) points moved by a motor (fast path of the sandwich, cga.apply_points)."""
-    if not len(p):
-        return p
-    return apply_points(M, _xyz(p))[:, :2]
 
 
 def segments_to_global(seg: Segments, M: Multivector) -> Segments:

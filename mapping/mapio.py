@@ -23,7 +23,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from cgamap.cga import BLADE_NAMES, Multivector
+from cgamap.cga import BLADE_NAMES
 
 from .cga_segments import cga_segments
 from .linemap import LineMap
@@ -178,7 +178,3 @@ def load_map(path: str | Path) -> LineMap:
         raise MapFormatError(f"{path}: not JSON (line {exc.lineno}: {exc.msg})") from None
     return map_from_json(doc, str(path))
 
-
-def multivector(d: dict) -> Multivector:
-    """A stored blade dictionary back as a Multivector."""
-    return Multivector(_mv(d, "cga"))

@@ -8,10 +8,11 @@ with the G(4,1) metric (a closed form of the same product, exact for vectors):
 containment (centre distance <= |r1 - r2|) is accepted as a candidate too.  Spheres are
 enlarged by a margin so that nearby pieces of one wall (and small pose errors) still meet.
 
-Closeness in (theta, rho): the lines' undirected angle difference (eq. 9, wrap aware) and
-the distance of the observed segment's end points from the map line (the rho difference
-measured where the segment is, which unlike the raw rho difference does not grow with the
-distance from the origin).
+Closeness in (theta, rho): the lines' undirected angle difference (eq. 9's wrap-aware
+difference taken modulo pi, tested through |sin| of the angle between the directions, which
+needs no wrapping) and the distance of the observed segment's end points from the map line
+(the rho difference measured where the segment is, which unlike the raw rho difference does
+not grow with the distance from the origin).
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from cgamap.cga import angle_diff
 
 _METRIC = np.array([1.0, 1.0, 1.0, 1.0, -1.0])  # e1, e2, e3, e+, e-
 
@@ -47,65 +47,12 @@ def sphere_relation(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
     return d12 ** 2 - n1[:, None] * n2[None, :]
 
 
-def spheres_touch(a1, b1, a2, b2, margin: float = 0.0) -> np.ndarray:
-    """(k1, k2) bool: the segments' spheres (enlarged by margin) intersect, touch, or one
-    contains the other.
-
-    Eq. (15) evaluated through the inner products of the sphere vectors: for normalised
-    IPNS spheres s_i = up(c_i) - r_i^2/2 einf, s_i . s_i = r_i^2 and
-    s1 . s2 = (r1^2 + r2^2 - d^2) / 2 (d the centre distance), so
-    (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 without forming the 5-vectors (``sphere_relation``
-    is the coefficient form, pinned against cga.spheres_intersect by a test).
-    """
-    c1, c2 = 0.5 * (a1 + b1), 0.5 * (a2 + b2)
-    r1 = 0.5 * np.hypot(*(b1 - a1).T) + margin
-    r2 = 0.5 * np.hypot(*(b2 - a2).T) + margin
-    dx = c1[:, None, 0] - c2[None, :, 0]
-    dy = c1[:, None, 1] - c2[None, :, 1]
-    d2 = dx * dx + dy * dy
-    R1, R2 = (r1 * r1)[:, None], (r2 * r2)[None, :]
-    s12 = 0.5 * (R1 + R2 - d2)
-    q = s12 * s12 - R1 * R2
-    contained = d2 <= (r1[:, None] - r2[None, :]) ** 2
-    return (q <= 1e-12 * np.maximum(1.0, R1 * R2)) | contained
-
-
-def line_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    d = b - a
-    return np.arctan2(d[..., 1], d[..., 0])
-
-
-def undirected_angle_diff(phi1, phi2) -> np.ndarray:
-    """|difference| of undirected line angles, in [0, pi/2] (eq. 9 on doubled angles)."""
-    return 0.5 * np.abs(angle_diff(2.0 * np.asarray(phi1), 2.0 * np.asarray(phi2)))
-
-
 def line_normals(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals n (k, 2) and offsets c (k,) with n.x = c on the line through a, b."""
     d = b - a
     d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
     n = np.column_stack([-d[:, 1], d[:, 0]])
     return n, np.sum(n * a, axis=-1)
-
-
-def endpoint_distances(a1, b1, a2, b2) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distances (k1, k2) of segment set 1's end points from set 2's lines."""
-    n, c = line_normals(a2, b2)
-    da = a1 @ n.T - c[None, :]
-    db = b1 @ n.T - c[None, :]
-    return da, db
-
-
-def overlap_gap(a1, b1, a2, b2) -> np.ndarray:
-    """(k1, k2) gap along line 2 between the projections of segment 1 and segment 2
-    (negative: they overlap by that much)."""
-    d = b2 - a2
-    L = np.linalg.norm(d, axis=-1)
-    u = d / np.maximum(L, 1e-12)[:, None]
-    ta = np.einsum("ik,jk->ij", a1, u) - np.sum(a2 * u, axis=-1)[None, :]
-    tb = np.einsum("ik,jk->ij", b1, u) - np.sum(a2 * u, axis=-1)[None, :]
-    lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
-    return np.maximum(lo - L[None, :], -hi)
 
 
 @dataclass
@@ -150,7 +97,11 @@ def match_index(a1, b1, idx: LineIndex, max_angle: float, max_dist: float,
         return np.zeros((k1, k2), bool), np.zeros((k1, k2))
     d1 = b1 - a1
     L1 = np.hypot(*d1.T)
-    # eq. (15) + containment through the sphere inner products (see spheres_touch)
+    # eq. (15) through the inner products of the normalised IPNS sphere vectors
+    # s_i = up(c_i) - r_i^2/2 einf: s_i . s_i = r_i^2 and s1 . s2 = (r1^2 + r2^2 - d^2) / 2
+    # (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 without forming the
+    # 5-vectors (sphere_relation is the coefficient form, pinned against
+    # cga.spheres_intersect by a test); containment: d <= |r1 - r2|
     c1 = 0.5 * (a1 + b1)
     r1 = 0.5 * L1 + margin
     r2 = idx.half + margin

@@ -49,6 +49,7 @@ class RelocParams:
     min_score: float = 0.5            # "not found" under this fraction of inlier points
     field_resolution: float = 0.05
     verify_points: int = 40
+    polish: bool = True               # final local search on the soft point score
     fit_weight: float = 0.0           # ranking = score + fit_weight * fit (neutral on Intel)
     endpoint_lines: int = 1           # scan lines whose end points propose corridor positions
     crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
@@ -252,6 +253,8 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             break
         corr = correct_pose(seg, lmap.a, lmap.b, pose0, 0.0, cp, index)
         pose = corr.pose
+        if P.polish:
+            pose = _polish(field, seg.points, pose, P.inlier_dist)
         sc = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist)[0])
         fit = float(_score(field, seg.points, pose[None, :2], pose[None, 2], P.inlier_dist,
                            soft=True)[0])
@@ -265,6 +268,22 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if not hyps or hyps[0].score < P.min_score:
         return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _polish(field: DistanceField, pts: np.ndarray, pose: np.ndarray, inlier: float,
+            steps=((0.06, 0.01), (0.03, 0.005), (0.015, 0.0025))) -> np.ndarray:
+    """Local grid search (3 x 3 x 3 around the pose, shrinking) on the soft point score:
+    the segments' fit can sit on a doubled wall; the points settle it."""
+    if not len(pts):
+        return pose
+    best = np.asarray(pose, dtype=float).copy()
+    o = np.array([-1.0, 0.0, 1.0])
+    grid = np.stack(np.meshgrid(o, o, o, indexing="ij"), -1).reshape(-1, 3)
+    for st, sr in steps:
+        cand = best + grid * [st, st, sr]
+        sc = _score(field, pts, cand[:, :2], cand[:, 2], inlier, soft=True)
+        best = cand[int(np.argmax(sc))]
+    return best
 
 
 def _overlaps(ga: np.ndarray, gb: np.ndarray, la: np.ndarray, lb: np.ndarray, tx: np.ndarray,
