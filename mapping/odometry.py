@@ -41,7 +41,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from cgamap.cga import Multivector, blade_index, motor_to_pose2d, normalize_motor
+from cgamap.cga import Multivector, motor_from_pose2d, motor_to_pose2d, normalize_motor
 
 __all__ = [
     "WheelGeometry", "OdometryNoise", "ODOM_NOISE_PRESETS", "wrap_angle", "ticks_to_wheel_distance",
@@ -153,24 +153,8 @@ def pose_increments(poses) -> np.ndarray:
                      wrap_angle(p[1:, 2] - p[:-1, 2])], axis=-1)
 
 
-_IDX = {name: blade_index(name) for name in ("e12", "e1+", "e1-", "e2+", "e2-")}
-
-
-def planar_motor(x, y, theta) -> Multivector:
-    """M = T R of a planar pose, written out: with c, s = cos, sin(theta/2) and
-    (a, b) = (c x + s y, c y - s x), M = c - s e12 - a/2 (e1+ + e1-) - b/2 (e2+ + e2-).
-
-    Same motor as ``cga.motor_from_pose2d`` (tested), written out because a batch of
-    thousands of steps then costs a few array ops instead of two batched products."""
-    x, y, th = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (x, y, theta)))
-    c, s = np.cos(th / 2.0), np.sin(th / 2.0)
-    a, b = c * x + s * y, c * y - s * x
-    v = np.zeros(x.shape + (32,))
-    v[..., 0] = c
-    v[..., _IDX["e12"]] = -s
-    v[..., _IDX["e1+"]] = v[..., _IDX["e1-"]] = -a / 2.0
-    v[..., _IDX["e2+"]] = v[..., _IDX["e2-"]] = -b / 2.0
-    return Multivector(v)
+# The planar pose's motor is the core's closed form (one pose or a batch, microseconds).
+planar_motor = motor_from_pose2d
 
 
 def compose_motor(M: Multivector, inc) -> Multivector:

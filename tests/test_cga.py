@@ -346,3 +346,13 @@ def test_cli_selfcheck_and_version(capsys):
         main(["--version"])
     assert exc.value.code == 0
     assert "cgamap" in capsys.readouterr().out
+
+
+@settings(max_examples=50)
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-10, 10))
+def test_planar_motor_closed_form_equals_translator_rotor(x, y, th):
+    general = translator(np.array([x, y, 0.0])) * rotor(np.array([0.0, 0.0, 1.0]), th)
+    assert np.allclose(motor_from_pose2d(x, y, th).v, general.v, atol=1e-12)
+    x2, y2, th2 = motor_to_pose2d(general * 3.0)  # any positive scale reads the same pose
+    assert np.isclose(x2, x, atol=1e-9) and np.isclose(y2, y, atol=1e-9)
+    assert np.isclose(angle_diff(th2, th), 0, atol=1e-12)
