@@ -102,7 +102,8 @@ def _rms(N, S) -> float:
     return float(np.sqrt(ms[0]))
 
 
-def fuse(n, centroid, scatter, a, b):
+def fuse(n: np.ndarray, centroid: np.ndarray, scatter: np.ndarray, a: np.ndarray,
+         b: np.ndarray) -> tuple:
     """One segment from a group: summed moments, TLS line, union of projected extents."""
     N = n.sum()
     C = (n[:, None] * centroid).sum(0) / N

@@ -77,7 +77,8 @@ class LineIndex:
                          self.n[idx], self.c[idx])
 
 
-def match_candidates(a1, b1, a2, b2, max_angle: float, max_dist: float,
+def match_candidates(a1: np.ndarray, b1: np.ndarray, a2: np.ndarray, b2: np.ndarray,
+                     max_angle: float, max_dist: float,
                      margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Candidate matrix (k1, k2) and its cost (mean |end point distance| + angle term).
 
@@ -88,8 +89,8 @@ def match_candidates(a1, b1, a2, b2, max_angle: float, max_dist: float,
     return match_index(a1, b1, LineIndex.of(a2, b2), max_angle, max_dist, margin)
 
 
-def match_index(a1, b1, idx: LineIndex, max_angle: float, max_dist: float,
-                margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float,
+                max_dist: float, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`match_candidates` against a prepared :class:`LineIndex`."""
     margin = max_dist if margin is None else margin
     k1, k2 = len(a1), len(idx.a)

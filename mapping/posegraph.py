@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 
-def wrap(a):
+def wrap(a) -> np.ndarray:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 

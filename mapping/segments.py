@@ -89,7 +89,7 @@ def empty_segments() -> Segments:
                     np.zeros((0, 2, 2)))
 
 
-def tls_from_moments(n, centroid, scatter):
+def tls_from_moments(n, centroid: np.ndarray, scatter: np.ndarray) -> tuple:
     """Total-least-squares line of each point set from its moments.
 
     Returns (direction (k, 2) unit, smallest eigenvalue of scatter / n (the mean squared
