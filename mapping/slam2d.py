@@ -50,7 +50,8 @@ class LoopParams:
     sigma: tuple[float, float] = (0.05, 0.01)  # loop edge std (m, rad)
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
-    cooldown: int = 3             # scans between optimisations
+    cooldown: int = 3             # scans between optimisations ...
+    cooldown_travel: float = 2.0  # ... and metres (a dense log must not re-solve every scan)
     quiet_after: int = 4          # scans without attempts after a closure that agreed
     sweep_every: int = 2          # after the run: tracking closures on every n-th scan (0: off)
     sweep_radius: float = 2.0     # ... with the nearest earlier visit within this (m)
@@ -181,7 +182,9 @@ class Mapper:
         loops, optimized = 0, False
         if P.loop.enabled:
             loops = self._close_loops(i, seg)
-            if self.pending and i - self.last_opt >= P.loop.cooldown:
+            since = self.travel[i] - self.travel[max(self.last_opt, 0)]
+            if self.pending and i - self.last_opt >= P.loop.cooldown and (
+                    self.last_opt < 0 or since >= P.loop.cooldown_travel):
                 self.optimize()
                 optimized = True
         # the correction already found the map segments near this scan (unless an
