@@ -1,6 +1,18 @@
 """The 2D line mapper: scan -> segments -> laser chain to global -> match against the whole
 global map -> pose correction (eqs. 10-11) -> merge, with loop closure on a pose graph.
 
+Per scan (:meth:`Mapper.step`):
+1. split-and-merge segments in the laser frame (:mod:`.segments`);
+2. prediction: the last pose composed with the odometry increment, corrected by the learnt
+   odometry heading drift and scale;
+3. correction against the whole global map (sphere test eq. 15 + line gates, robust
+   point-to-line least squares with the odometry as prior; :mod:`.correction`);
+4. a pose-graph node with a sequential edge; every few scans, a loop closure against an
+   earlier visit's segments -- point-to-line tracking first, Hough-domain relocalisation
+   (§V) when the drift is larger -- and, when a closure disagrees, a graph solve that moves
+   the map with it (segments are anchored to the scans that saw them);
+5. merge into the map (point pairs moved by the laser chain motor; :mod:`.linemap`).
+
 Plain data and pure steps; the caller (CLI, daemon) owns time, threads and I/O.  Poses of the
 graph's nodes are laser poses (the laser chain M_GB M_BL with the mount ``M_BL``); the base
 pose follows through the inverse mount.
@@ -74,11 +86,11 @@ class MapperParams:
     seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)
     seq_from_cov: bool = False  # add the correction's covariance to seq_sigma
     odo_sigma: tuple[float, float, float, float] = (0.05, 0.10, 0.02, 0.03)  # unmatched step
-    # online odometry calibration: heading drift per metre and translation scale, learnt from
-    # the corrections of well-matched steps (exponential average with this weight)
     refine_passes: int = 0  # measured neutral on the Intel log; kept for other logs
     refine_correction: CorrectionParams = field(default_factory=lambda: CorrectionParams(
         gates=(0.15, 0.1, 0.08), angle_gates_deg=(5.0, 4.0, 3.0)))
+    # online odometry calibration: heading drift per metre and translation scale, learnt from
+    # the corrections of well-matched steps (exponential average with this weight)
     calib_rate: float = 0.05
     calib_min_fraction: float = 0.5
 
