@@ -27,6 +27,7 @@ class MapParams:
     age_scans: int = 12            # a segment seen once is judged after this many scans
     age_min_length: float = 0.6    # ... and dropped if shorter than this
     dedupe_every: int = 10
+    dedupe_margin: float = 0.05    # sphere enlargement when fusing map segments with each other
     max_residual: float = 0.03     # a fusion must still be a line: joint RMS residual below
 
 
@@ -239,9 +240,9 @@ def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = N
     if not len(rec):
         return 0
     ok_r, _ = match_candidates(lmap.a[rec], lmap.b[rec], lmap.a, lmap.b, params.merge_angle,
-                               params.merge_dist, 0.05)
+                               params.merge_dist, params.dedupe_margin)
     ok_t, _ = match_candidates(lmap.a, lmap.b, lmap.a[rec], lmap.b[rec], params.merge_angle,
-                               params.merge_dist, 0.05)
+                               params.merge_dist, params.dedupe_margin)
     ok_r &= ok_t.T  # both ways: each lies along the other
     ok_r[np.arange(len(rec)), rec] = False
     ii, jj = np.nonzero(ok_r)
