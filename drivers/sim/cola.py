@@ -19,15 +19,13 @@ import collections
 import contextlib
 import logging
 import select
-import signal
 import socket
 import struct
-import sys
-import threading
 import time
 
 import numpy as np
 
+from .twin import SignalFaults, TwinControl, serve_until_signal
 from .world import NoiseModel, World, get_world
 
 log = logging.getLogger(__name__)
@@ -68,12 +66,15 @@ class _Client:
         self.subscribed = False
 
 
-class ColaTwin:
+class ColaTwin(TwinControl):
     """The simulated TiM5xx; ``start()`` runs it in a thread, ``stop()`` ends it."""
+
+    _thread_name = "cola-twin"
 
     def __init__(self, world: str | World = "room", *, host: str = "127.0.0.1", port: int = 0,
                  seed: int = 0, fault_rate: float = 0.0, time_scale: float = 1.0,
                  noise: NoiseModel | None = None, binary: bool = False) -> None:
+        super().__init__()
         self.binary = binary   # CoLa B instead of CoLa A
         self.world = get_world(world) if isinstance(world, str) else world
         self.rng = np.random.default_rng(seed)
@@ -90,12 +91,6 @@ class ColaTwin:
         self.truth: collections.deque[tuple[int, float, float, float, float]] = \
             collections.deque(maxlen=200000)
         self.stats = collections.Counter()
-        self._truncate = 0
-        self._stall_until = 0.0
-        self._lock = threading.Lock()
-        self._requests: collections.deque = collections.deque()
-        self._running = False
-        self._thread: threading.Thread | None = None
         self._power_on()
 
     @property
@@ -123,29 +118,14 @@ class ColaTwin:
         self._next_due = time.monotonic()
         self._t0 = time.monotonic()
 
-    # -- faults -----------------------------------------------------------------------------
-    def truncate(self, count: int = 1) -> None:
-        with self._lock:
-            self._truncate += count
-
-    def stall(self, seconds: float) -> None:
-        with self._lock:
-            self._stall_until = time.monotonic() + seconds
-
+    # -- faults (truncate, stall: TwinControl; executed by the twin thread) -----------------
     def unplug(self) -> None:
+        """Close the connections and stop listening."""
         self._request("unplug")
 
     def replug(self) -> None:
+        """Listen again on the same port; the device has been power-cycled."""
         self._request("replug")
-
-    def _request(self, what: str) -> None:
-        if not self._running:
-            self._do(what)
-            return
-        done = threading.Event()
-        self._requests.append((what, done))
-        if not done.wait(5.0):
-            raise TimeoutError(f"twin did not {what}")
 
     def _do(self, what: str) -> None:
         if what == "unplug":
@@ -162,31 +142,14 @@ class ColaTwin:
             self._power_on()
             self.stats["replugs"] += 1
 
-    # -- life cycle ---------------------------------------------------------------------------
-    def start(self) -> ColaTwin:
-        self._running = True
-        self._thread = threading.Thread(target=self._run, name="cola-twin", daemon=True)
-        self._thread.start()
-        return self
-
+    # -- life cycle (start, __enter__/__exit__: TwinControl) ----------------------------------
     def stop(self) -> None:
-        self._running = False
-        if self._thread is not None:
-            self._thread.join(5.0)
+        super().stop()
         self._do("unplug")
-
-    def __enter__(self) -> ColaTwin:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def _run(self) -> None:
         while self._running:
-            while self._requests:
-                what, done = self._requests.popleft()
-                self._do(what)
-                done.set()
+            self._serve_requests()
             if self.listener is None:
                 time.sleep(0.01)
                 continue
@@ -386,11 +349,7 @@ class ColaTwin:
         original, key = self._scandata("sSN")
         data = original
         intact = True
-        with self._lock:
-            cut = self._truncate > 0
-            if cut:
-                self._truncate -= 1
-        if cut:
+        if self._take_truncate():
             data = data[:int(self.rng.integers(2, len(data) - 1))]
             intact = False
             self.stats["truncated"] += 1
@@ -417,27 +376,8 @@ def main(args: argparse.Namespace) -> int:
     port = getattr(args, "port", 0) or 0
     twin = ColaTwin(getattr(args, "world", "room"), port=port, binary=port == 2112,
                     seed=getattr(args, "seed", 0), fault_rate=getattr(args, "fault_rate", 0.0))
-    stop = threading.Event()
-    actions: collections.deque = collections.deque()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGUSR1, lambda *_: actions.append("unplug"))
-    signal.signal(signal.SIGUSR2, lambda *_: actions.append("stall"))
-    twin.start()
-    print(twin.address, flush=True)
-    print(f"CoLa {'B' if twin.binary else 'A'} twin (TiM5xx) in world {twin.world.name!r}; "
-          "SIGUSR1 = drop 2 s, "
-          "SIGUSR2 = stall 2 s", file=sys.stderr, flush=True)
-    try:
-        while not stop.wait(0.1):
-            while actions:
-                if actions.popleft() == "unplug":
-                    twin.unplug()
-                    if stop.wait(2.0):
-                        break
-                    twin.replug()
-                else:
-                    twin.stall(2.0)
-    finally:
-        twin.stop()
-    return 0
+    return serve_until_signal(
+        lambda: twin.start().address, twin.stop,
+        banner=f"CoLa {'B' if twin.binary else 'A'} twin (TiM5xx) in world "
+               f"{twin.world.name!r}; SIGUSR1 = drop 2 s, SIGUSR2 = stall 2 s",
+        faults=SignalFaults(twin.unplug, twin.replug, twin.stall))

@@ -26,10 +26,8 @@ import argparse
 import contextlib
 import os
 import re
-import signal
 import sys
 import tempfile
-import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -38,6 +36,7 @@ import numpy as np
 
 from .pty_device import PtyClosed, PtyDevice
 from .tcp_device import TcpDevice
+from .twin import SignalFaults, TwinControl, serve_until_signal
 from .world import NoiseModel, World, get_world
 
 MODELS = {
@@ -129,8 +128,11 @@ def _passes_checks(orig: bytes, got: bytes) -> bool:
     return not body.translate(None, bytes(range(0x30, 0x70)))
 
 
-class HokuyoTwin:
+class HokuyoTwin(TwinControl):
     """A SCIP 2.0 Hokuyo on a pty.  Use as a context manager or call start()/close()."""
+
+    _thread_name = "hokuyo-twin"
+    _join_s = 2.0
 
     def __init__(self, model: str = "UTM-30LX", world: str | World = "corridor", *,
                  fault_rate: float = 0.0, seed: int = 0, link: str | None = None,
@@ -138,6 +140,7 @@ class HokuyoTwin:
                  scip1: bool = False, clock0_ms: int = 0, status: str = "00",
                  epoch: float | None = None, tcp_port: int | None = None,
                  baud: int | None = None) -> None:
+        super().__init__()
         name = ALIASES.get(model.lower(), model)
         if name not in MODELS:
             raise ValueError(f"unknown Hokuyo model {model!r}; choose from {sorted(MODELS)}")
@@ -157,18 +160,13 @@ class HokuyoTwin:
         self.dev: PtyDevice | TcpDevice = PtyDevice(link) if tcp_port is None else \
             TcpDevice(port=tcp_port)
         self._scip2 = not scip1
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         # host monotonic time (s) at which the device clock reads clock0_ms
         self._t0 = time.monotonic() if epoch is None else float(epoch)
-        self._truncate = 0
         self._unstable = 0
         # RS-232 emulation (pty only): the rate the sensor talks at; while the host's port is
         # set to another, input is lost and output arrives as garbage.  None: USB (any rate).
         self.power_on_baud = baud
         self.baud = baud
-        self._stall_until = 0.0
         self._inbuf = b""
         self._power_on()
 
@@ -183,38 +181,19 @@ class HokuyoTwin:
         """What to give the driver: the pty path or ``tcp://host:port``."""
         return self.dev.path if isinstance(self.dev, PtyDevice) else f"tcp://{self.dev.path}"
 
-    def start(self) -> HokuyoTwin:
-        self._thread = threading.Thread(target=self._serve, name="hokuyo-twin", daemon=True)
-        self._thread.start()
-        return self
-
+    # start(), __enter__/__exit__: TwinControl
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+        """End the twin thread and close the device."""
+        super().stop()
         self.dev.close()
 
-    def __enter__(self) -> HokuyoTwin:
-        return self.start()
+    stop = close   # the name the other twins use
 
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    # -- faults ----------------------------------------------------------------------------
-    def truncate(self, n: int = 1) -> None:
-        """Cut the next ``n`` scan replies short."""
-        with self._lock:
-            self._truncate += n
-
+    # -- faults (truncate: the next scan replies cut short; stall: TwinControl) --------------
     def unstable(self, n: int = 1) -> None:
         """Answer the next ``n`` scans of the stream with status 0M (sensor unstable)."""
         with self._lock:
             self._unstable += n
-
-    def stall(self, seconds: float) -> None:
-        """Send nothing and answer nothing for ``seconds`` (commands sent meanwhile are lost)."""
-        with self._lock:
-            self._stall_until = time.monotonic() + seconds
 
     def disconnect(self) -> None:
         """Unplug: the pty pair closes and its path disappears."""
@@ -253,8 +232,8 @@ class HokuyoTwin:
         return 60.0 / self.p["scan"] / self.speed
 
     # -- serving ---------------------------------------------------------------------------
-    def _serve(self) -> None:
-        while not self._stop.is_set():
+    def _run(self) -> None:
+        while self._running:
             with self._lock:
                 open_ = self.dev.is_open
                 stalled = time.monotonic() < self._stall_until
@@ -474,11 +453,7 @@ class HokuyoTwin:
         mm, inten = self._measure(spec, ms / 1000.0)
         ts = ms % (1 << 24)
         block = scan_reply(echo, status, ts, mm, spec["enc"], inten)
-        with self._lock:
-            cut = self._truncate > 0
-            if cut:
-                self._truncate -= 1
-        self._send(block, SentScan(ts, True, mm, echo), cut=cut)
+        self._send(block, SentScan(ts, True, mm, echo), cut=self._take_truncate())
 
 
 def process_epoch() -> float:
@@ -527,22 +502,12 @@ def main(args: argparse.Namespace) -> int:
         os.rmdir(tmp)
         print(f"cgamap: sim-device hokuyo: {exc}", file=sys.stderr)
         return 2
-    done = threading.Event()
-
-    def unplug(*_a) -> None:
-        twin.disconnect()
-        threading.Timer(1.0, twin.reconnect).start()
-
-    signal.signal(signal.SIGINT, lambda *_a: done.set())
-    signal.signal(signal.SIGTERM, lambda *_a: done.set())
-    signal.signal(signal.SIGUSR1, unplug)
-    signal.signal(signal.SIGUSR2, lambda *_a: twin.stall(2.0))
-    with twin:
-        print(twin.path, flush=True)
-        print(f"hokuyo twin: {twin.model}, world {twin.world.name}, fault rate "
-              f"{twin.fault_rate:g}; SIGUSR1 unplugs 1 s, SIGUSR2 stalls 2 s", file=sys.stderr)
-        while not done.wait(0.5):
-            pass
-    with contextlib.suppress(OSError):
-        os.rmdir(tmp)
-    return 0
+    try:
+        return serve_until_signal(
+            lambda: twin.start().path, twin.close,
+            banner=f"hokuyo twin: {twin.model}, world {twin.world.name}, fault rate "
+                   f"{twin.fault_rate:g}; SIGUSR1 unplugs 1 s, SIGUSR2 stalls 2 s",
+            faults=SignalFaults(twin.disconnect, twin.reconnect, twin.stall, unplug_s=1.0))
+    finally:
+        with contextlib.suppress(OSError):
+            os.rmdir(tmp)

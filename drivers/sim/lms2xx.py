@@ -25,15 +25,13 @@ import argparse
 import collections
 import logging
 import os
-import signal
-import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
 
 from .pty_device import PtyClosed, PtyDevice
+from .twin import SignalFaults, TwinControl, serve_until_signal
 from .world import NoiseModel, World, get_world
 
 log = logging.getLogger(__name__)
@@ -106,13 +104,16 @@ def default_config() -> bytearray:
     return cfg
 
 
-class Lms2xxTwin:
+class Lms2xxTwin(TwinControl):
     """The simulated LMS on a pty; ``start()`` runs it in a thread, ``stop()`` ends it."""
+
+    _thread_name = "lms2xx-twin"
 
     def __init__(self, world: str | World = "corridor", *, link: str | None = None,
                  seed: int = 0, fault_rate: float = 0.0, time_scale: float = 1.0,
                  noise: NoiseModel | None = None, interlace_half: bool = False,
                  type_string: str = "LMS291-S05") -> None:
+        super().__init__()
         self.world = get_world(world) if isinstance(world, str) else world
         self.rng = np.random.default_rng(seed)
         self.fault_rate = float(fault_rate)
@@ -130,12 +131,6 @@ class Lms2xxTwin:
         self.truth: collections.deque[tuple[int, float, float, float, float]] = \
             collections.deque(maxlen=200000)
         self.stats = collections.Counter()
-        self._truncate = 0
-        self._stall_until = 0.0
-        self._requests: collections.deque = collections.deque()
-        self._lock = threading.Lock()
-        self._running = False
-        self._thread: threading.Thread | None = None
         self._power_on()
 
     @property
@@ -159,17 +154,7 @@ class Lms2xxTwin:
     def streaming(self) -> bool:
         return self.mode == 0x24
 
-    # -- fault injection (thread-safe: executed by the twin thread) -------------------------
-    def truncate(self, count: int = 1) -> None:
-        """Cut the next ``count`` streamed telegrams short."""
-        with self._lock:
-            self._truncate += count
-
-    def stall(self, seconds: float) -> None:
-        """Hang: no output and no answers for ``seconds`` (input received meanwhile is lost)."""
-        with self._lock:
-            self._stall_until = time.monotonic() + seconds
-
+    # -- fault injection (truncate, stall: TwinControl; executed by the twin thread) --------
     def unplug(self) -> None:
         """Close the pty and remove the link, as pulling the cable/adapter looks to the host."""
         self._request("unplug")
@@ -177,15 +162,6 @@ class Lms2xxTwin:
     def replug(self) -> None:
         """A fresh pty behind the same link; the device has been power-cycled (9600 baud)."""
         self._request("replug")
-
-    def _request(self, what: str) -> None:
-        if not self._running:
-            self._do(what)
-            return
-        done = threading.Event()
-        self._requests.append((what, done))
-        if not done.wait(5.0):
-            raise TimeoutError(f"twin did not {what}")
 
     def _do(self, what: str) -> None:
         if what == "unplug":
@@ -196,17 +172,9 @@ class Lms2xxTwin:
             self._power_on()
             self.stats["replugs"] += 1
 
-    # -- life cycle ------------------------------------------------------------------------
-    def start(self) -> Lms2xxTwin:
-        self._running = True
-        self._thread = threading.Thread(target=self._run, name="lms2xx-twin", daemon=True)
-        self._thread.start()
-        return self
-
+    # -- life cycle (start, __enter__/__exit__: TwinControl) ---------------------------------
     def stop(self) -> None:
-        self._running = False
-        if self._thread is not None:
-            self._thread.join(5.0)
+        super().stop()
         self.pty.close()
         if self._own_dir:
             try:
@@ -214,18 +182,9 @@ class Lms2xxTwin:
             except OSError:
                 pass
 
-    def __enter__(self) -> Lms2xxTwin:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
     def _run(self) -> None:
         while self._running:
-            while self._requests:
-                what, done = self._requests.popleft()
-                self._do(what)
-                done.set()
+            self._serve_requests()
             if not self.pty.is_open:
                 time.sleep(0.01)
                 continue
@@ -405,11 +364,7 @@ class Lms2xxTwin:
         period = max(sweeps / 75.0, len(data) * 10.0 / self.baud) / self.time_scale
         now = time.monotonic()
         self._next_due = max(self._next_due + period, now - 2 * period)
-        with self._lock:
-            cut = self._truncate > 0
-            if cut:
-                self._truncate -= 1
-        if cut:
+        if self._take_truncate():
             data = data[:int(self.rng.integers(4, len(data) - 1))]
             self.stats["truncated"] += 1
             self._emit(data)
@@ -427,26 +382,8 @@ def main(args: argparse.Namespace) -> int:
     """
     twin = Lms2xxTwin(getattr(args, "world", "corridor"), seed=getattr(args, "seed", 0),
                       fault_rate=getattr(args, "fault_rate", 0.0))
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    actions: collections.deque = collections.deque()
-    signal.signal(signal.SIGUSR1, lambda *_: actions.append("unplug"))
-    signal.signal(signal.SIGUSR2, lambda *_: actions.append("stall"))
-    twin.start()
-    print(twin.path, flush=True)
-    print(f"lms2xx twin in world {twin.world.name!r}; SIGUSR1 = unplug 2 s, SIGUSR2 = stall 2 s",
-          file=sys.stderr, flush=True)
-    try:
-        while not stop.wait(0.1):
-            while actions:
-                if actions.popleft() == "unplug":
-                    twin.unplug()
-                    if stop.wait(2.0):
-                        break
-                    twin.replug()
-                else:
-                    twin.stall(2.0)
-    finally:
-        twin.stop()
-    return 0
+    return serve_until_signal(
+        lambda: twin.start().path, twin.stop,
+        banner=f"lms2xx twin in world {twin.world.name!r}; SIGUSR1 = unplug 2 s, "
+               "SIGUSR2 = stall 2 s",
+        faults=SignalFaults(twin.unplug, twin.replug, twin.stall))
