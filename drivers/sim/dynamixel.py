@@ -26,12 +26,12 @@ import math
 import os
 import random
 import select
-import signal
-import sys
 import threading
 import time
 import tty
 from dataclasses import dataclass, field
+
+from .twin import close_fds, flip_bytes, serve_until_signal
 
 # -- protocol 2.0 framing (pure) --------------------------------------------------------------
 
@@ -506,8 +506,7 @@ class DynamixelBusTwin:
             while self._outbox and self._outbox[0][0] <= time.monotonic():
                 _, _, pkt = heapq.heappop(self._outbox)
                 if self.fault_rate > 0:
-                    pkt = bytes(b ^ 0xFF if self._rng.random() < self.fault_rate else b
-                                for b in pkt)
+                    pkt = flip_bytes(pkt, self.fault_rate, self._rng)
                 try:
                     os.write(master, pkt)
                 except OSError:
@@ -532,12 +531,7 @@ class DynamixelBusTwin:
             os.write(self._wake[1], b"x")
         if self._thread is not None:
             self._thread.join(timeout=5)
-        for fd in self._fds:
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-        self._fds = []
+        close_fds(self._fds)
         self._wake = None
 
     def __enter__(self) -> DynamixelBusTwin:
@@ -551,14 +545,4 @@ def main(args) -> int:
     """``cgamap sim-device dynamixel-pantilt``: servos 1 (XM430-W350) and 2 (XL430-W250)."""
     twin = DynamixelBusTwin(fault_rate=float(getattr(args, "fault_rate", 0.0) or 0.0),
                             seed=int(getattr(args, "seed", 0) or 0))
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    print(twin.start(), flush=True)
-    try:
-        while not stop.wait(0.5):
-            pass
-    finally:
-        twin.stop()
-    sys.stdout.flush()
-    return 0
+    return serve_until_signal(twin.start, twin.stop)

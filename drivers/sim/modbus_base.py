@@ -26,14 +26,13 @@ import math
 import os
 import random
 import select
-import signal
-import sys
 import threading
 import time
 import tty
 from dataclasses import dataclass, field
 
 from ..modbus_base import RegisterMap, encode_registers
+from .twin import close_fds, flip_bytes, serve_until_signal
 
 _INPUT_SPAN = 16
 _HOLDING_SPAN = 16
@@ -329,8 +328,7 @@ class ModbusBaseTwin:
                     try:
                         data = os.read(fd, 4096)
                         if fd == m_srv and self.fault_rate > 0:   # line noise on replies
-                            data = bytes(b ^ 0xFF if rng.random() < self.fault_rate else b
-                                         for b in data)
+                            data = flip_bytes(data, self.fault_rate, rng)
                         os.write(pair[fd], data)
                     except OSError:
                         return
@@ -352,12 +350,7 @@ class ModbusBaseTwin:
             os.write(self._relay_stop[1], b"x")
             if self._relay is not None:
                 self._relay.join(timeout=5)
-        for fd in self._fds:
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-        self._fds = []
+        close_fds(self._fds)
         self._relay_stop = None
 
     def __enter__(self) -> ModbusBaseTwin:
@@ -393,15 +386,5 @@ def main(args) -> int:
     """``cgamap sim-device modbus-base [--rtu] [--port N]``: serve until SIGINT/SIGTERM."""
     twin = ModbusBaseTwin(fault_rate=float(getattr(args, "fault_rate", 0.0) or 0.0),
                           seed=int(getattr(args, "seed", 0) or 0))
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    where = twin.start(rtu=bool(getattr(args, "rtu", False)), port=int(getattr(args, "port", 0)))
-    print(where, flush=True)
-    try:
-        while not stop.wait(0.5):
-            pass
-    finally:
-        twin.stop()
-    sys.stdout.flush()
-    return 0
+    rtu, port = bool(getattr(args, "rtu", False)), int(getattr(args, "port", 0))
+    return serve_until_signal(lambda: twin.start(rtu=rtu, port=port), twin.stop)

@@ -1,5 +1,5 @@
 """Plumbing shared by the device twins: the twin thread's life cycle, fault requests, and the
-``cgamap sim-device`` serve-until-signal loop.
+``cgamap sim-device`` serve-until-signal loop; small helpers of the pty twins.
 
 :class:`TwinControl` is a base for twins that run their device in one thread (``_run``): it
 holds the lock, the truncate counter and stall deadline that the fault methods set and the
@@ -14,6 +14,9 @@ unplugs for a while and SIGUSR2 stalls.
 from __future__ import annotations
 
 import collections
+import contextlib
+import os
+import random
 import signal
 import sys
 import threading
@@ -150,3 +153,16 @@ def serve_until_signal(start: Callable[[], str], stop: Callable[[], None], *,
         stop()
     sys.stdout.flush()
     return 0
+
+
+def close_fds(fds: list[int]) -> None:
+    """Close each descriptor, ignoring ones already closed; empties ``fds``."""
+    for fd in fds:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    fds.clear()
+
+
+def flip_bytes(data: bytes, rate: float, rng: random.Random) -> bytes:
+    """Line noise: each byte inverted with probability ``rate`` (one draw per byte)."""
+    return bytes(b ^ 0xFF if rng.random() < rate else b for b in data)
