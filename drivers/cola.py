@@ -60,13 +60,8 @@ def cola_a(command: str) -> bytes:
     return b"\x02" + command.encode("ascii") + b"\x03"
 
 
-class ColaAParser:
-    """Incremental CoLa A telegram splitter: yields the text between STX and ETX as tokens.
-
-    A new STX before the ETX means the earlier telegram was cut short: it is dropped and
-    counted (``framing``); so are bytes outside telegrams and telegrams with bytes that are not
-    printable ASCII or longer than :data:`MAX_TELEGRAM`.
-    """
+class _Splitter:
+    """What the CoLa A and B splitters share: the pending bytes and the error counters."""
 
     def __init__(self, errors: ErrorCounters | None = None) -> None:
         self.errors = errors if errors is not None else ErrorCounters()
@@ -74,6 +69,15 @@ class ColaAParser:
 
     def reset(self) -> None:
         self.buf.clear()
+
+
+class ColaAParser(_Splitter):
+    """Incremental CoLa A telegram splitter: yields the text between STX and ETX as tokens.
+
+    A new STX before the ETX means the earlier telegram was cut short: it is dropped and
+    counted (``framing``); so are bytes outside telegrams and telegrams with bytes that are not
+    printable ASCII or longer than :data:`MAX_TELEGRAM`.
+    """
 
     def feed(self, data: bytes) -> list[list[bytes]]:
         buf = self.buf
@@ -309,16 +313,9 @@ def cola_b(payload: bytes) -> bytes:
     return COLA_B_MAGIC + len(payload).to_bytes(4, "big") + payload + bytes([_xor(payload)])
 
 
-class ColaBParser:
+class ColaBParser(_Splitter):
     """Incremental CoLa B splitter: payloads with a good XOR; bad ones dropped and counted
     (``checksum``), bytes outside frames counted (``framing``); sliding resumes one byte on."""
-
-    def __init__(self, errors: ErrorCounters | None = None) -> None:
-        self.errors = errors if errors is not None else ErrorCounters()
-        self.buf = bytearray()
-
-    def reset(self) -> None:
-        self.buf.clear()
 
     def feed(self, data: bytes) -> list[list[bytes]]:
         """Payloads split as ``[type, name, binary rest]``."""
