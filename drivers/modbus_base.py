@@ -50,6 +50,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from .messages import ErrorCounters, WheelTicks
+from .pacing import wait_next_slot
 
 log = logging.getLogger(__name__)
 
@@ -416,18 +417,7 @@ class ModbusBase:
             elif max_silence_s is not None and now - last_ok > max_silence_s:
                 raise ModbusBaseError(f"{self.config.url}: no reply for {max_silence_s:g} s "
                                       f"({self.errors.as_dict()})")
-            k += 1
-            now = time.monotonic()
-            late = math.floor((now - t0) / period) - k + 1
-            if late > 0:                      # the read overran whole slots: skip them
-                self.errors.dropped += late
-                k += late
-            delay = t0 + k * period - time.monotonic()
-            if delay > 0:
-                if stop is not None:
-                    stop.wait(delay)
-                else:
-                    time.sleep(delay)
+            k = wait_next_slot(t0, period, k, self.errors, stop)
 
     # -- set-points ---------------------------------------------------------------------
     def set_wheel_speeds(self, left: float, right: float) -> bool:

@@ -44,6 +44,7 @@ import serial
 from cgamap.cga import Multivector, rotor
 
 from .messages import ErrorCounters, PanTiltState
+from .pacing import wait_next_slot
 
 log = logging.getLogger(__name__)
 # a vanished port (USB unplug, twin closed the pty) shows as any of these
@@ -487,17 +488,7 @@ class PanTilt:
             if st is not None:
                 got += 1
                 yield st
-            k += 1
-            late = math.floor((time.monotonic() - t0) / period) - k + 1
-            if late > 0:
-                self.errors.dropped += late
-                k += late
-            delay = t0 + k * period - time.monotonic()
-            if delay > 0:
-                if stop is not None:
-                    stop.wait(delay)
-                else:
-                    time.sleep(delay)
+            k = wait_next_slot(t0, period, k, self.errors, stop)
 
     def wait_until_reached(self, pan: float, tilt: float, tol: float = 0.01,
                            timeout: float = 10.0, period: float = 0.02) -> PanTiltState | None:
