@@ -271,8 +271,24 @@ def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = N
 
 def refresh(lmap: LineMap, poses: np.ndarray) -> None:
     """Recompute every segment from its contributions seen from ``poses`` (n, 3) (laser
-    poses of the nodes): moments add up per segment, TLS refit, union of extents."""
-    if not len(lmap.c_seg):
+    poses of the nodes): moments add up per segment, TLS refit, union of extents.
+
+    Contributions with a negative node (frozen: from a map loaded or handed over, whose scans
+    are not in this run's graph) are left out; a segment with only frozen contributions keeps
+    its geometry."""
+    live = lmap.c_node >= 0
+    if not live.any():
+        return
+    if not live.all():
+        frozen = LineMap(lmap.a, lmap.b, lmap.n_pts, lmap.centroid, lmap.scatter, lmap.n_obs,
+                         lmap.created, lmap.last_seen)
+        frozen.c_seg, frozen.c_node, frozen.c_n = (lmap.c_seg[live], lmap.c_node[live],
+                                                    lmap.c_n[live])
+        frozen.c_cent, frozen.c_scat = lmap.c_cent[live], lmap.c_scat[live]
+        frozen.c_a, frozen.c_b = lmap.c_a[live], lmap.c_b[live]
+        refresh(frozen, poses)
+        for name in ("a", "b", "n_pts", "centroid", "scatter"):
+            setattr(lmap, name, getattr(frozen, name))
         return
     P = np.asarray(poses)[lmap.c_node]
     c, s = np.cos(P[:, 2]), np.sin(P[:, 2])

@@ -58,8 +58,9 @@ class PoseGraph:
         return e
 
     def optimize(self, iterations: int = 10, robust_scale: float = 3.0,
-                 fixed: int = 0) -> dict:
-        """Gauss-Newton over all poses (node ``fixed`` held); updates ``poses`` in place."""
+                 fixed: int | list[int] = 0) -> dict:
+        """Gauss-Newton over all poses (the ``fixed`` node or nodes held); updates ``poses``
+        in place."""
         n = len(self.poses)
         if n < 2 or not self.ei:
             return {"iterations": 0, "chi2": 0.0}
@@ -98,10 +99,11 @@ class PoseGraph:
                 rows.append((3 * bi[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
                 cols.append((3 * bj[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
                 vals.append(M.ravel())
-            # hold the fixed node with a stiff prior
-            rows.append(3 * fixed + r3)
-            cols.append(3 * fixed + r3)
-            vals.append(np.full(3, 1e9))
+            # hold the fixed node(s) with a stiff prior
+            fx = np.atleast_1d(np.asarray(fixed, dtype=int))
+            rows.append((3 * fx[:, None] + r3).ravel())
+            cols.append((3 * fx[:, None] + r3).ravel())
+            vals.append(np.full(3 * len(fx), 1e9))
             H = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
                                                       np.concatenate(cols))), shape=(3 * n,) * 2)
             g = np.zeros(3 * n)

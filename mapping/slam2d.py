@@ -109,7 +109,8 @@ class Mapper:
 
     def __init__(self, params: MapperParams | None = None, initial_pose=(0.0, 0.0, 0.0)):
         self.params = params or MapperParams()
-        self.map = LineMap()
+        self._map = LineMap()
+        self.anchors = [0]   # nodes held fixed in the graph: the start and every re-anchor
         self.graph = PoseGraph()
         self.initial = np.asarray(initial_pose, dtype=float)
         self.last_odom: np.ndarray | None = None
@@ -124,6 +125,19 @@ class Mapper:
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.loop_stats = {"tracked": 0, "tried": 0, "no_pose": 0, "low_score": 0,
                            "ambiguous": 0}
+
+    @property
+    def map(self) -> LineMap:
+        return self._map
+
+    @map.setter
+    def map(self, lmap: LineMap) -> None:
+        """Adopt a map (e.g. loaded from a checkpoint): contributions from scans that are not
+        this run's graph nodes are frozen (node -1), so they are neither moved nor matched
+        as an earlier visit, while their segments still serve for matching."""
+        if lmap is not self._map and len(lmap.c_node):
+            lmap.c_node = np.full_like(lmap.c_node, -1)
+        self._map = lmap
 
     @property
     def count(self) -> int:
@@ -149,9 +163,12 @@ class Mapper:
         seg = extract_segments(ranges, angle_min, angle_increment, P.segments)
         corr = None
         if self.last_odom is None:
+            # first scan, or re-anchored (set pose): a new chain held at the given pose
             pose = self._laser(self.initial)
             i = self.graph.add_node(pose)
-            self.travel.append(0.0)
+            if i and i not in self.anchors:
+                self.anchors.append(i)
+            self.travel.append(self.travel[-1] if self.travel else 0.0)
             self.last_odom = odom_l
             self._merge(seg, i, None)
             return StepResult(pose, len(seg), None)
@@ -290,7 +307,8 @@ class Mapper:
     def _submap(self, X: np.ndarray, j: int, last: int) -> LineMap | None:
         """The segments seen from scans j +- window (none after ``last``), in j's frame."""
         LP = self.params.loop
-        sel = (np.abs(self.map.c_node - j) <= LP.window) & (self.map.c_node <= last)
+        sel = (np.abs(self.map.c_node - j) <= LP.window) & (self.map.c_node <= last) & (
+            self.map.c_node >= 0)
         if sel.sum() < 3:
             return None
         nodes = self.map.c_node[sel]
@@ -313,6 +331,8 @@ class Mapper:
         added = 0
         for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # per scan, not per point
             i = int(node)
+            if i < 0:
+                continue  # frozen contributions of an adopted map
             last = self._last_old(i)
             if last < 0 or i % LP.sweep_every or s1 - s0 < 2:
                 continue
@@ -358,7 +378,7 @@ class Mapper:
 
     def optimize(self, final: bool = False) -> None:
         """Solve the pose graph and move the map with it."""
-        self.graph.optimize()
+        self.graph.optimize(fixed=self.anchors)
         refresh(self.map, self.poses)
         # the walls near the closure are the ones that came to coincide
         dedupe(self.map, self.params.map, since=None if final else self.count - 60)
@@ -390,6 +410,8 @@ class Mapper:
         cp = self.params.refine_correction
         index = LineIndex.of(m.a, m.b)
         for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # one correction per scan
+            if node < 0:
+                continue  # frozen contributions of an adopted map
             idx = order[s0:s1]
             k = len(idx)
             seg = Segments(m.c_a[idx], m.c_b[idx], m.c_n[idx].astype(int), np.zeros(k),

@@ -130,3 +130,37 @@ def test_laser_mount_offset():
     base_est = np.array([m.base_pose(p) for p in est])
     assert ate(base_est, base)["ate_trans_m"] < 0.1
     assert np.allclose(m.base_pose(compose(base[3], mount)), base[3], atol=1e-9)
+
+
+def test_adopted_map_and_re_anchoring():
+    """The daemon's uses: a map handed to a fresh mapper (checkpoint) keeps serving for
+    matching without its scans; setting the pose mid-run starts a new held chain."""
+    from cgamap.mapping.evaluation import ate
+    from cgamap.mapping.slam2d import Mapper
+
+    w = get_world("loop")
+    t = np.arange(0, 2 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=6)
+    half = len(scans) // 2
+    first = Mapper(initial_pose=odo[0])
+    for s, o in zip(scans[:half], odo[:half], strict=True):
+        first.step(s.ranges, s.angle_min, s.angle_increment, o)
+    first.finish()
+    # a fresh mapper adopts the map, starts at the true pose of the second half
+    second = Mapper(initial_pose=truth[half])
+    second.map = first.map
+    assert np.all(second.map.c_node == -1)
+    second.step(scans[half].ranges, scans[half].angle_min, scans[half].angle_increment,
+                odo[half])
+    # ... and is re-anchored part way (a "set pose" from outside)
+    mid = half + (len(scans) - half) // 2
+    for k in range(half + 1, len(scans)):
+        if k == mid:
+            second.initial = truth[k].copy()
+            second.last_odom = None
+        second.step(scans[k].ranges, scans[k].angle_min, scans[k].angle_increment, odo[k])
+    est = second.finish()
+    assert len(second.anchors) == 2
+    assert ate(est, truth[half:])["ate_trans_m"] < 0.15
