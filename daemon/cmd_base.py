@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import time
 
 from cgamap.daemon.cli import UsageError
@@ -59,8 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="serial port path, serial://PATH?baudrate=N or socket://HOST:PORT")
     q.add_argument("--ids", default="1,2", metavar="PAN,TILT", help="servo ids (default 1,2)")
     q.add_argument("--json", action="store_true", help="JSON output")
-    q.add_argument("--pan-limits", default=None, metavar="MIN,MAX", help="rad")
-    q.add_argument("--tilt-limits", default=None, metavar="MIN,MAX", help="rad")
+    q.add_argument("--pan-limits", default=None, metavar="MIN,MAX",
+                   help="rad; write --pan-limits=-1.5,1.5 when MIN is negative")
+    q.add_argument("--tilt-limits", default=None, metavar="MIN,MAX",
+                   help="rad; write --tilt-limits=-0.8,0.8 when MIN is negative")
     q.add_argument("--velocity", type=float, default=None, help="profile velocity, rad/s")
     q.add_argument("--protocol", type=float, default=2.0, choices=(1.0, 2.0),
                    help="Dynamixel protocol: 2.0 (X-series, default) or 1.0 (AX, MX)")
@@ -86,19 +90,40 @@ def run_odom(args: argparse.Namespace) -> int:
     from cgamap.drivers.modbus_base import ModbusBase, ModbusBaseConfig, ModbusBaseError
     from cgamap.mapping.odometry import OdometryIntegrator, WheelGeometry
 
-    if args.rate <= 0 or args.count < 0 or args.every < 1:
-        raise UsageError("odom: --rate must be > 0, --count >= 0, --every >= 1")
+    if args.count < 0:
+        raise UsageError(f"odom: --count: must be >= 0, got {args.count}")
+    if args.every < 1:
+        raise UsageError(f"odom: --every: must be >= 1, got {args.every}")
+    for flag, value in (("--rate", args.rate), ("--timeout", args.timeout),
+                        ("--wheel-radius", args.wheel_radius), ("--track", args.track),
+                        ("--ticks-per-rev", args.ticks_per_rev)):
+        _positive_finite("odom", flag, value)
+    if args.unit is not None and not 0 <= args.unit <= 255:
+        raise UsageError(f"odom: --unit: a Modbus device id is 0..255, got {args.unit}")
     drive = _pair(args.drive, "--drive", what_cmd="odom") if args.drive else None
     cfg = ModbusBaseConfig(url=args.device, device_id=args.unit, rate_hz=args.rate,
                            wheel_radius=args.wheel_radius, track_width=args.track,
                            ticks_per_rev=args.ticks_per_rev, allow_setpoints=drive is not None)
+    if drive is not None and not all(math.isfinite(v) and abs(v) <= cfg.max_wheel_speed
+                                     for v in drive):
+        raise UsageError(f"odom: --drive: wheel speeds must be finite and within "
+                         f"+-{cfg.max_wheel_speed:g} rad/s, got {args.drive}")
     geom = WheelGeometry(cfg.wheel_radius, cfg.track_width, cfg.ticks_per_rev)
     try:
-        base = ModbusBase(cfg).open()
+        base = ModbusBase(cfg)
+    except ModbusBaseError as exc:  # the driver names the URL
+        raise UsageError(f"odom: {exc}", 1) from None
+    except ValueError as exc:  # a malformed query (?unit=abc)
+        raise UsageError(f"odom: --device {args.device}: {exc}") from None
+    if not 0 <= base.device_id <= 255:
+        raise UsageError(f"odom: --device {args.device}: Modbus device id must be 0..255, "
+                         f"got {base.device_id}")
+    try:
+        base.open()
         if drive is not None and not base.set_wheel_speeds(*drive):
             raise ModbusBaseError("wheel speed set-point not acknowledged")
     except ModbusBaseError as exc:
-        raise UsageError(f"odom: {exc}", 1) from None
+        raise UsageError(f"odom: {exc}{_missing_port(args.device)}", 1) from None
     odo = OdometryIntegrator(geom)
     printed = 0
     try:
@@ -129,6 +154,24 @@ def run_odom(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_finite(cmd: str, flag: str, value: float) -> None:
+    if not (math.isfinite(value) and value > 0):
+        raise UsageError(f"{cmd}: {flag}: must be a positive number, got {value}")
+
+
+def _missing_port(url: str) -> str:
+    """Why a serial device could not be opened, when the reason is that it is not there."""
+    path = url.split("://", 1)[1] if url.startswith(("serial://", "rtu://")) else url
+    path = path.split("?", 1)[0]
+    if "://" in url and not url.startswith(("serial://", "rtu://")) or not path.startswith("/"):
+        return ""
+    if not os.path.exists(path):
+        return " (no such device)"
+    if os.path.isdir(path):
+        return " (is a directory, not a serial port)"
+    return ""
+
+
 # -- pantilt ----------------------------------------------------------------------------------
 
 def _pair(text: str, what: str, cast=float, what_cmd: str = "pantilt") -> tuple:
@@ -138,6 +181,30 @@ def _pair(text: str, what: str, cast=float, what_cmd: str = "pantilt") -> tuple:
         raise UsageError(f"{what_cmd}: {what}: expected two comma-separated values, "
                          f"got {text!r}") from None
     return a, b
+
+
+def _limits(text: str, what: str) -> tuple[float, float]:
+    lo, hi = _pair(text, what)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise UsageError(f"pantilt: {what}: expected finite MIN < MAX, got {text!r}")
+    return lo, hi
+
+
+def _check_pantilt_args(args: argparse.Namespace) -> tuple[int, int]:
+    pan_id, tilt_id = _pair(args.ids, "--ids", int)
+    for servo_id in (pan_id, tilt_id):
+        if not 0 <= servo_id <= 252:  # 253..255 are reserved / broadcast
+            raise UsageError(f"pantilt: --ids: a Dynamixel id is 0..252, got {servo_id}")
+    if pan_id == tilt_id:
+        raise UsageError(f"pantilt: --ids: pan and tilt need two different servos, "
+                         f"got {args.ids!r}")
+    if args.velocity is not None:  # 0 would mean "no limit" to the servo: not by accident
+        _positive_finite("pantilt", "--velocity", args.velocity)
+    if args.action == "move":
+        if not (math.isfinite(args.pan) and math.isfinite(args.tilt)):
+            raise UsageError(f"pantilt move: goal must be finite, got {args.pan} {args.tilt}")
+        _positive_finite("pantilt move", "--wait-timeout", args.wait_timeout)
+    return pan_id, tilt_id
 
 
 def run_pantilt(args: argparse.Namespace) -> int:
@@ -151,17 +218,20 @@ def run_pantilt(args: argparse.Namespace) -> int:
         describe_hw_error,
     )
 
-    pan_id, tilt_id = _pair(args.ids, "--ids", int)
+    pan_id, tilt_id = _check_pantilt_args(args)
     cfg = PanTiltConfig(url=args.device, protocol=args.protocol).with_ids(pan_id, tilt_id)
     if args.pan_limits:
-        lo, hi = _pair(args.pan_limits, "--pan-limits")
+        lo, hi = _limits(args.pan_limits, "--pan-limits")
         cfg = replace(cfg, pan=replace(cfg.pan, min_rad=lo, max_rad=hi))
     if args.tilt_limits:
-        lo, hi = _pair(args.tilt_limits, "--tilt-limits")
+        lo, hi = _limits(args.tilt_limits, "--tilt-limits")
         cfg = replace(cfg, tilt=replace(cfg.tilt, min_rad=lo, max_rad=hi))
     if args.velocity is not None:
         cfg = replace(cfg, profile_velocity=args.velocity)
-    head = PanTilt(cfg)
+    try:
+        head = PanTilt(cfg)
+    except ValueError as exc:  # a malformed URL query (?baudrate=abc)
+        raise UsageError(f"pantilt: --device {args.device}: {exc}") from None
     if args.action == "move":   # refuse a bad goal before even opening the port
         try:
             head.check_goal(args.pan, args.tilt)
@@ -171,6 +241,8 @@ def run_pantilt(args: argparse.Namespace) -> int:
         head.open()
     except PanTiltError as exc:
         raise UsageError(f"pantilt: {exc}", 1) from None
+    except ValueError as exc:  # a malformed URL (unknown scheme, ?baudrate=abc)
+        raise UsageError(f"pantilt: --device {args.device}: {exc}") from None
     try:
         if args.action == "torque":
             ok = head.torque(args.state == "on")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 import numpy as np
@@ -76,7 +77,7 @@ def _driver(args: argparse.Namespace):
     try:
         return cls(args.device, reconnect=True, stall_timeout=min(2.0, args.timeout), **kw)
     except ValueError as exc:
-        raise UsageError(f"{args.model}: {exc}") from None
+        raise UsageError(f"--device {args.device}: {args.model}: {exc}") from None
 
 
 def summary(scan) -> str:
@@ -91,8 +92,10 @@ def summary(scan) -> str:
 def run(args: argparse.Namespace) -> int:
     if args.count < 0:
         raise UsageError(f"--count: must be >= 0, got {args.count}")
-    if not args.timeout > 0:
-        raise UsageError(f"--timeout: must be positive, got {args.timeout}")
+    if not (args.timeout > 0 and math.isfinite(args.timeout)):
+        raise UsageError(f"--timeout: must be a positive number of seconds, got {args.timeout}")
+    if not args.device.strip():
+        raise UsageError("--device: empty (give a device path, serial://PATH or tcp://HOST:PORT)")
     from cgamap.drivers.laser import DeviceError
     from cgamap.drivers.transport import TransportError
 
@@ -101,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
         drv.open()
     except (TransportError, DeviceError) as exc:
         raise UsageError(f"--device {args.device}: {exc}", 1) from None
+    except ValueError as exc:  # a malformed URL the transport only notices when opening
+        raise UsageError(f"--device {args.device}: {exc}") from None
     n = 0
     try:
         while args.count == 0 or n < args.count:

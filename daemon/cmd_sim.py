@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
+
+from cgamap.daemon.cli import UsageError
 
 TWINS = {
     "lms2xx": "cgamap.drivers.sim.lms2xx",
@@ -33,6 +36,31 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+LASER_TWINS = ("lms2xx", "hokuyo", "cola")
+
+
+def _check(args: argparse.Namespace) -> None:
+    """Refuse bad flags before a twin starts (its own errors would be tracebacks)."""
+    if not (math.isfinite(args.fault_rate) and 0.0 <= args.fault_rate <= 1.0):
+        raise UsageError(f"sim-device: --fault-rate: must be a probability in [0, 1], "
+                         f"got {args.fault_rate}")
+    if not 0 <= args.port <= 65535:
+        raise UsageError(f"sim-device: --port: must be a TCP port 0..65535, got {args.port}")
+    if args.name in LASER_TWINS:
+        from cgamap.drivers.sim.world import WORLDS
+
+        if args.world not in WORLDS:
+            raise UsageError(f"sim-device: --world {args.world!r}: unknown world "
+                             f"(choose from {', '.join(sorted(WORLDS))})")
+
+
 def run(args: argparse.Namespace) -> int:
+    _check(args)
     module = importlib.import_module(TWINS[args.name])
-    return int(module.main(args) or 0)
+    try:
+        return int(module.main(args) or 0)
+    except OSError as exc:  # e.g. the --port is taken
+        where = f" --port {args.port}:" if args.port else ""
+        raise UsageError(f"sim-device {args.name}:{where} {exc.strerror or exc}", 1) from None
+    except (ValueError, RuntimeError) as exc:
+        raise UsageError(f"sim-device {args.name}: {exc}", 1) from None

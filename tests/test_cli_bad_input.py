@@ -1,0 +1,124 @@
+"""Bad input to every command: one clear line naming what is wrong, a non-zero exit, no
+traceback, nothing lost, no hang.  Most cases run ``cgamap.daemon.cli.main`` in-process (the
+checks happen before any device is opened); a few run the real entry points as subprocesses.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+from pathlib import Path
+
+import pytest
+from cgamap.daemon.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_line(code: int, err: str, *needles: str, expect: int | None = None) -> None:
+    """The contract: non-zero exit, one line on stderr naming the problem, no traceback."""
+    assert code != 0, err
+    if expect is not None:
+        assert code == expect, (code, err)
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+
+
+def run_proc(args: list[str], timeout: float = 20.0, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(args, capture_output=True, text=True, timeout=timeout, **kw)
+
+
+# -- sim-device -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, needle", [
+    (["sim-device", "lms2xx", "--world", "nope"], "--world"),
+    (["sim-device", "lms2xx", "--fault-rate", "2"], "--fault-rate"),
+    (["sim-device", "hokuyo", "--fault-rate", "nan"], "--fault-rate"),
+    (["sim-device", "cola", "--port", "99999"], "--port"),
+    (["sim-device", "modbus-base", "--port", "-5"], "--port"),
+])
+def test_sim_device_refuses_bad_flags(argv, needle, capsys):
+    code, _, err = run_cli(argv, capsys)
+    one_line(code, err, needle, expect=2)
+
+
+def test_sim_device_port_in_use_is_one_line(capsys):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        code, _, err = run_cli(["sim-device", "cola", "--port", port], capsys)
+    one_line(code, err, f"--port {port}", expect=1)
+
+
+# -- scan -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--device", "", "--model", "lms2xx"], "--device"),
+    (["--device", "tcp://127.0.0.1:99999", "--model", "cola"], "tcp://127.0.0.1:99999"),
+    (["--device", "x", "--model", "hokuyo", "--timeout", "inf"], "--timeout"),
+])
+def test_scan_refuses_bad_input(argv, needle, capsys):
+    code, _, err = run_cli(["scan", *argv], capsys)
+    one_line(code, err, needle, expect=2)
+
+
+# -- odom and pantilt -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--rate", "nan"], "--rate"),
+    (["--rate", "inf"], "--rate"),
+    (["--timeout", "-1"], "--timeout"),
+    (["--wheel-radius", "0"], "--wheel-radius"),
+    (["--track", "-0.3"], "--track"),
+    (["--ticks-per-rev", "0"], "--ticks-per-rev"),
+    (["--unit", "-5"], "--unit"),
+    (["--drive", "nan,1"], "--drive"),
+    (["--drive", "1e9,1"], "--drive"),
+    (["--count", "-1"], "--count"),
+])
+def test_odom_refuses_bad_flags(extra, needle, capsys):
+    code, _, err = run_cli(["odom", "--device", "tcp://127.0.0.1:1", *extra], capsys)
+    one_line(code, err, needle, expect=2)
+
+
+@pytest.mark.parametrize("url", ["127.0.0.1:1?unit=abc", "/dev/ttyNOPE?baudrate=abc",
+                                 "127.0.0.1:1?unit=999"])
+def test_odom_malformed_url_is_one_line(url, capsys):
+    code, _, err = run_cli(["odom", "--device", url, "--count", "1"], capsys)
+    one_line(code, err, url, expect=2)
+
+
+def test_odom_missing_serial_port_says_so(tmp_path, capsys):
+    code, _, err = run_cli(["odom", "--device", tmp_path / "ttyNOPE", "--count", "1"], capsys)
+    one_line(code, err, "ttyNOPE", "no such device", expect=1)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--ids", "1,1", "status"], "--ids"),
+    (["--ids=300,2", "status"], "--ids"),
+    (["--pan-limits", "1,-1", "move", "0", "0"], "--pan-limits"),
+    (["--tilt-limits", "nan,1", "move", "0", "0"], "--tilt-limits"),
+    (["--velocity", "-1", "move", "0.1", "0"], "--velocity"),
+    (["--velocity", "nan", "move", "0.1", "0"], "--velocity"),
+    (["move", "0.1", "0", "--wait-timeout", "-1"], "--wait-timeout"),
+    (["move", "nan", "0"], "finite"),
+])
+def test_pantilt_refuses_bad_flags(argv, needle, tmp_path, capsys):
+    code, _, err = run_cli(["pantilt", "--device", tmp_path / "ttyNOPE", *argv], capsys)
+    one_line(code, err, needle, expect=2)
+
+
+@pytest.mark.parametrize("url", ["foo://x", "/dev/ttyNOPE?baudrate=abc"])
+def test_pantilt_malformed_url_is_one_line(url, capsys):
+    code, _, err = run_cli(["pantilt", "--device", url, "status"], capsys)
+    one_line(code, err, url, expect=2)
