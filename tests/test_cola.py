@@ -23,6 +23,7 @@ from cgamap.drivers.laser import DeviceError
 from cgamap.drivers.messages import ErrorCounters
 from cgamap.drivers.sim.cola import ColaTwin
 from cgamap.drivers.sim.world import NoiseModel
+from helpers_lasers import read_until
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -104,12 +105,9 @@ _SMALL = " ".join(_SMALL[:26] + _SMALL[26:26 + 32] + _TAIL.split(" "))
 _CLEAN = cola_a(_SMALL) * 3
 
 
-def _mutant(rng: np.random.Generator) -> bytes:
-    kind = rng.integers(0, 3)
-    if kind == 0:
-        alphabet = np.frombuffer(b"\x02\x03 0123456789ABCDEFsSNRALMD\x00\xff", np.uint8)
-        return rng.choice(alphabet, rng.integers(0, 800)).tobytes()
-    arr = bytearray(_CLEAN)
+def _damaged(clean: bytes, rng: np.random.Generator, kind: int) -> bytes:
+    """``clean`` with 1-5 random bytes replaced (kind 1) or a random slice cut out (kind 2)."""
+    arr = bytearray(clean)
     if kind == 1:
         for pos in rng.integers(0, len(arr), rng.integers(1, 6)):
             arr[pos] = int(rng.integers(0, 256))
@@ -117,6 +115,14 @@ def _mutant(rng: np.random.Generator) -> bytes:
         a, b = sorted(rng.integers(0, len(arr), 2))
         del arr[a:b]
     return bytes(arr)
+
+
+def _mutant(rng: np.random.Generator) -> bytes:
+    kind = rng.integers(0, 3)
+    if kind == 0:
+        alphabet = np.frombuffer(b"\x02\x03 0123456789ABCDEFsSNRALMD\x00\xff", np.uint8)
+        return rng.choice(alphabet, rng.integers(0, 800)).tobytes()
+    return _damaged(_CLEAN, rng, kind)
 
 
 @settings(max_examples=max(1, FUZZ_EXAMPLES // 20), deadline=None, derandomize=True,
@@ -200,14 +206,7 @@ def test_fuzz_cola_b_parser(seed, chunk):
             stream = rng.integers(0, 256, rng.integers(0, 800), dtype=np.uint8).tobytes()
             stream = b"\x02\x02\x02\x02" + stream if rng.random() < 0.5 else stream
         else:
-            arr = bytearray(_B_CLEAN)
-            if kind == 1:
-                for pos in rng.integers(0, len(arr), rng.integers(1, 6)):
-                    arr[pos] = int(rng.integers(0, 256))
-            else:
-                a, b = sorted(rng.integers(0, len(arr), 2))
-                del arr[a:b]
-            stream = bytes(arr)
+            stream = _damaged(_B_CLEAN, rng, kind)
         p = ColaBParser()
         for i in range(0, len(stream), chunk):
             for toks in p.feed(stream[i:i + chunk]):
@@ -312,9 +311,7 @@ def test_stall_detected_and_resumed(twin):
     with ColaDriver(twin.url, stall_timeout=0.4, protocol=twin.protocol) as drv:
         assert drv.read_scan(2.0) is not None
         twin.stall(1.0)
-        deadline = time.monotonic() + 5.0
-        while drv.errors.timeout == 0 and time.monotonic() < deadline:
-            drv.read_scan(0.5)
+        read_until(drv, lambda: drv.errors.timeout > 0, 5.0, 0.5)
         assert drv.errors.timeout >= 1
         assert drv.read_scan(5.0) is not None
 
@@ -325,9 +322,7 @@ def test_connection_drop_and_return_within_2s(twin):
     try:
         assert drv.read_scan(2.0) is not None
         twin.unplug()
-        deadline = time.monotonic() + 3.0
-        while drv.errors.disconnects == 0 and time.monotonic() < deadline:
-            drv.read_scan(0.2)
+        read_until(drv, lambda: drv.errors.disconnects > 0, 3.0, 0.2)
         assert drv.errors.disconnects >= 1 and not drv.connected
         assert drv.read_scan(0.4) is None
         twin.replug()

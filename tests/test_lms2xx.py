@@ -21,6 +21,7 @@ from cgamap.drivers.lms2xx import (
 from cgamap.drivers.messages import ErrorCounters, LaserScan
 from cgamap.drivers.sim.lms2xx import Lms2xxTwin, sick_crc, telegram
 from cgamap.drivers.sim.world import NoiseModel
+from helpers_lasers import read_until
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -373,9 +374,8 @@ def test_stall_is_detected_and_streaming_resumes(twin):
     with _driver(twin, stall_timeout=0.4) as drv:
         assert drv.read_scan(2.0) is not None
         twin.stall(1.0)
-        deadline = time.monotonic() + 5.0  # scans already on the wire still arrive first
-        while drv.errors.timeout == 0 and time.monotonic() < deadline:
-            drv.read_scan(0.5)
+        # scans already on the wire still arrive first
+        read_until(drv, lambda: drv.errors.timeout > 0, 5.0, 0.5)
         assert drv.errors.timeout >= 1
         assert drv.read_scan(5.0) is not None
 
@@ -419,9 +419,7 @@ def test_unplug_replug_streams_again_within_2s(twin):
     try:
         assert drv.read_scan(2.0) is not None
         twin.unplug()
-        t_end = time.monotonic() + 3.0
-        while drv.errors.disconnects == 0 and time.monotonic() < t_end:
-            drv.read_scan(0.2)
+        read_until(drv, lambda: drv.errors.disconnects > 0, 3.0, 0.2)
         assert drv.errors.disconnects >= 1 and not drv.connected   # loss reported
         assert drv.read_scan(0.5) is None                           # nothing to read
         twin.replug()
