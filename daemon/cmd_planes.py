@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -54,36 +55,74 @@ def register(subparsers) -> None:
 
 
 def _positive(name: str, value: float) -> None:
-    if not value > 0:
-        raise UsageError(f"{name}: must be positive, got {value}")
+    if not (value > 0 and np.isfinite(value)):
+        raise UsageError(f"{name}: must be a positive number, got {value}")
+
+
+def _input_file(flag: str, path: str) -> None:
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{flag} {path}: is a directory, not a file")
+    if not p.is_file():
+        raise UsageError(f"{flag} {path}: no such file")
+
+
+def _output_file(flag: str, path: str | None, suffixes: tuple[str, ...]) -> None:
+    """Refuse an output the export would fail on, before the (long) detection runs;
+    ``suffixes``: the file name endings the writer needs (empty: any)."""
+    if not path:
+        return
+    p = Path(path)
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise UsageError(f"{flag} {path}: cannot export: expected a "
+                         f"{' or '.join(suffixes)} file name")
+    if p.is_dir():
+        raise UsageError(f"{flag} {path}: cannot export: is a directory")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise UsageError(f"{flag} {path}: cannot export: no such directory {str(parent)!r}")
+    if not os.access(parent, os.W_OK):
+        raise UsageError(f"{flag} {path}: cannot export: directory {str(parent)!r} is not "
+                         "writable")
 
 
 def _load_cloud(path: str) -> np.ndarray:
     from cgamap.mapping.pcd import CloudFormatError, read_cloud
 
-    if not Path(path).is_file():
-        raise UsageError(f"--cloud {path}: no such file")
+    _input_file("--cloud", path)
     try:
         return read_cloud(path)
     except CloudFormatError as exc:
         raise UsageError(f"--cloud {exc}") from None
+    except (OSError, EOFError, ValueError) as exc:  # e.g. an empty or cut .npy
+        raise UsageError(f"--cloud {path}: cannot read ({exc})") from None
 
 
 def _stereo_points(left: str, right: str, calib: str | None, max_depth: float) -> np.ndarray:
     import cv2
+    import yaml
     from cgamap.drivers.stereo import points_from_stereo_pair
 
     if not calib:
         raise UsageError("--stereo: needs --calib FILE")
-    for name in (left, right, calib):
-        if not Path(name).is_file():
-            raise UsageError(f"--stereo/--calib {name}: no such file")
+    for flag, name in (("--stereo", left), ("--stereo", right), ("--calib", calib)):
+        _input_file(flag, name)
     imgs = [cv2.imread(name, cv2.IMREAD_UNCHANGED) for name in (left, right)]
     for name, img in zip((left, right), imgs, strict=True):
         if img is None:
             raise UsageError(f"--stereo {name}: not an image OpenCV can read")
+    if imgs[0].shape[:2] != imgs[1].shape[:2]:
+        raise UsageError(f"--stereo: the images differ in size: {left} is "
+                         f"{imgs[0].shape[1]}x{imgs[0].shape[0]}, {right} is "
+                         f"{imgs[1].shape[1]}x{imgs[1].shape[0]}")
     try:
         return points_from_stereo_pair(imgs[0], imgs[1], calib, max_depth=max_depth)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise UsageError(f"--calib {calib}: YAML syntax error{where}") from None
+    except UnicodeDecodeError:
+        raise UsageError(f"--calib {calib}: not a text (YAML) file") from None
     except (ValueError, KeyError, TypeError, OSError) as exc:
         raise UsageError(f"--calib {calib}: {exc}") from None
 
@@ -95,20 +134,30 @@ def run(args) -> int:
     _positive("--threshold", args.threshold)
     _positive("--min-inliers", args.min_inliers)
     _positive("--max-planes", args.max_planes)
+    _positive("--max-depth", args.max_depth)
+    if not 0 <= args.normal_tol < 90:
+        raise UsageError(f"--normal-tol: must be in [0, 90) degrees, got {args.normal_tol}")
+    if args.range_noise is not None and not (args.range_noise >= 0
+                                             and np.isfinite(args.range_noise)):
+        raise UsageError(f"--range-noise: must be a number >= 0, got {args.range_noise}")
+    if args.up is not None and not (np.all(np.isfinite(args.up))
+                                    and np.linalg.norm(args.up) > 0):
+        raise UsageError(f"--up: must be a finite non-zero vector, got {args.up}")
+    _output_file("--ply", args.ply, ())
+    _output_file("--hough-png", args.hough_png, (".png",))
     t0 = time.perf_counter()
     if args.cloud:
         cloud = _load_cloud(args.cloud)
         range_noise = 0.0 if args.range_noise is None else args.range_noise
+        source = f"--cloud {args.cloud}"
     else:
         cloud = _stereo_points(args.stereo[0], args.stereo[1], args.calib, args.max_depth)
         range_noise = 0.003 if args.range_noise is None else args.range_noise
-    if not 0 <= args.normal_tol < 90:
-        raise UsageError(f"--normal-tol: must be in [0, 90) degrees, got {args.normal_tol}")
-    if range_noise < 0:
-        raise UsageError(f"--range-noise: must not be negative, got {range_noise}")
+        source = f"--stereo {args.stereo[0]} {args.stereo[1]}"
     pts = finite_points(cloud)
     if len(pts) < 3:
-        raise UsageError("input: fewer than 3 finite points")
+        raise UsageError(f"{source}: fewer than 3 finite points"
+                         + ("" if args.cloud else f" within --max-depth {args.max_depth:g} m"))
     t1 = time.perf_counter()
     prm = PlaneParams(threshold=args.threshold, range_noise=range_noise,
                       min_inliers=args.min_inliers, max_planes=args.max_planes,
@@ -120,8 +169,6 @@ def run(args) -> int:
         from cgamap.mapping.configurations import find_configurations
 
         up = args.up or ((0.0, 0.0, 1.0) if args.cloud else (0.0, -1.0, 0.0))
-        if not np.linalg.norm(up) > 0:
-            raise UsageError("--up: must not be the zero vector")
         configs = find_configurations(planes, up=up)
     _exports(args, planes)
     if args.json:
@@ -156,13 +203,18 @@ def _exports(args, planes) -> None:
     pm.planes = []
     for p in planes:  # one map plane per detected plane, no merging
         pm._add(_as_map_plane(p))
-    try:
-        if args.ply:
-            pm.save_ply(args.ply)
-        if args.hough_png:
-            pm.save_hough_png(args.hough_png)
-    except OSError as exc:
-        raise UsageError(f"export: {exc}") from None
+    import cv2
+
+    for flag, path, save in (("--ply", args.ply, pm.save_ply),
+                             ("--hough-png", args.hough_png, pm.save_hough_png)):
+        if not path:
+            continue
+        try:
+            save(path)
+        except OSError as exc:
+            raise UsageError(f"{flag} {path}: cannot export: {exc.strerror or exc}") from None
+        except cv2.error as exc:
+            raise UsageError(f"{flag} {path}: cannot export: {exc.err or exc}") from None
 
 
 def _as_map_plane(p):

@@ -9,6 +9,7 @@ import socket
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cgamap.daemon.cli import main
 
@@ -122,3 +123,68 @@ def test_pantilt_refuses_bad_flags(argv, needle, tmp_path, capsys):
 def test_pantilt_malformed_url_is_one_line(url, capsys):
     code, _, err = run_cli(["pantilt", "--device", url, "status"], capsys)
     one_line(code, err, url, expect=2)
+
+
+# -- planes -----------------------------------------------------------------------------------
+
+def _small_cloud(tmp_path: Path) -> Path:
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
+    path = tmp_path / "floor.npy"
+    np.save(path, pts)
+    return path
+
+
+def test_planes_cloud_file_problems(tmp_path, capsys):
+    (tmp_path / "dir.pcd").mkdir()
+    (tmp_path / "empty.npy").write_bytes(b"")
+    np.save(tmp_path / "nan.npy", np.full((50, 3), np.nan))
+    code, _, err = run_cli(["planes", "--cloud", tmp_path / "dir.pcd"], capsys)
+    one_line(code, err, "dir.pcd", "is a directory", expect=2)
+    code, _, err = run_cli(["planes", "--cloud", tmp_path / "empty.npy"], capsys)
+    one_line(code, err, "--cloud", "empty.npy", expect=2)
+    code, _, err = run_cli(["planes", "--cloud", tmp_path / "nan.npy"], capsys)
+    one_line(code, err, "nan.npy", "finite points", expect=2)
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--threshold", "inf"], "--threshold"),
+    (["--range-noise", "nan"], "--range-noise"),
+    (["--max-depth", "0"], "--max-depth"),
+    (["--up", "nan", "0", "1", "--configurations"], "--up"),
+    (["--hough-png", "view.txt"], "--hough-png"),
+    (["--ply", "no/such/dir/planes.ply"], "--ply"),
+])
+def test_planes_refuses_bad_flags_before_detecting(extra, needle, tmp_path, capsys):
+    code, out, err = run_cli(["planes", "--cloud", _small_cloud(tmp_path), *extra], capsys)
+    one_line(code, err, needle, expect=2)
+    assert out == ""  # refused before any detection output
+
+
+def test_planes_exports_still_written(tmp_path, capsys):
+    ply, png = tmp_path / "p.ply", tmp_path / "p.png"
+    code, out, err = run_cli(["planes", "--cloud", _small_cloud(tmp_path), "--min-inliers",
+                              "100", "--ply", ply, "--hough-png", png], capsys)
+    assert code == 0, err
+    assert ply.stat().st_size > 0 and png.stat().st_size > 0
+
+
+def test_planes_stereo_input_problems(tmp_path, capsys):
+    import cv2
+
+    left, right, small = tmp_path / "l.png", tmp_path / "r.png", tmp_path / "s.png"
+    cv2.imwrite(str(left), np.zeros((40, 60), np.uint8))
+    cv2.imwrite(str(right), np.zeros((40, 60), np.uint8))
+    cv2.imwrite(str(small), np.zeros((30, 60), np.uint8))
+    bad_yaml = tmp_path / "calib.yaml"
+    bad_yaml.write_text("fx: [\n")
+    binary = tmp_path / "calib.bin"
+    binary.write_bytes(bytes(range(128, 256)) * 8)
+    code, _, err = run_cli(["planes", "--stereo", left, right, "--calib", bad_yaml], capsys)
+    one_line(code, err, "--calib", "YAML", expect=2)
+    code, _, err = run_cli(["planes", "--stereo", left, right, "--calib", binary], capsys)
+    one_line(code, err, "--calib", "calib.bin", expect=2)
+    code, _, err = run_cli(["planes", "--stereo", left, right, "--calib", tmp_path], capsys)
+    one_line(code, err, "--calib", "is a directory", expect=2)
+    code, _, err = run_cli(["planes", "--stereo", left, small, "--calib", bad_yaml], capsys)
+    one_line(code, err, "--stereo", "differ in size", expect=2)
