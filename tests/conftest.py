@@ -35,3 +35,14 @@ def require_data(relpath: str) -> Path:
 @pytest.fixture
 def shared_data():
     return require_data
+
+
+@pytest.fixture
+def cli_main(monkeypatch):
+    """cgamap's real main() with only the device commands (``sim-device``, ``odom``,
+    ``pantilt``): other areas' command modules may be mid-edit."""
+    from cgamap.daemon import cli
+
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ["cgamap.daemon.cmd_sim",
+                                                 "cgamap.daemon.cmd_base"])
+    return cli.main

@@ -288,15 +288,6 @@ def test_word_order_matters_on_the_wire(twin_factory):
 
 # -- CLI --------------------------------------------------------------------------------------
 
-@pytest.fixture
-def cli_main(monkeypatch):
-    """cgamap's real main() with only this area's commands (others' modules may be mid-edit)."""
-    from cgamap.daemon import cli
-
-    monkeypatch.setattr(cli, "COMMAND_MODULES", ["cgamap.daemon.cmd_sim",
-                                                 "cgamap.daemon.cmd_base"])
-    return cli.main
-
 def test_cli_odom_json_lines(twin_factory, capsys, cli_main):
     import json
 

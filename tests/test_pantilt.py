@@ -226,15 +226,6 @@ def test_rotors_from_state(twin):
 
 # -- CLI --------------------------------------------------------------------------------------
 
-@pytest.fixture
-def cli_main(monkeypatch):
-    """cgamap's real main() with only this area's commands (others' modules may be mid-edit)."""
-    from cgamap.daemon import cli
-
-    monkeypatch.setattr(cli, "COMMAND_MODULES", ["cgamap.daemon.cmd_sim",
-                                                 "cgamap.daemon.cmd_base"])
-    return cli.main
-
 def test_cli_pantilt_move_status_torque(twin, capsys, cli_main):
     import json
 
