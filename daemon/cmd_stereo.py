@@ -5,7 +5,10 @@ calibration YAML, frames.jsonl; layout in ``drivers/stereo_replay.py``)."""
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+from pathlib import Path
 
 import numpy as np
 from cgamap.daemon.cli import UsageError
@@ -54,15 +57,52 @@ def _grabber(args: argparse.Namespace):
         raise UsageError(f"stereo: {exc}") from None
 
 
-def run(args: argparse.Namespace) -> int:
-    from cgamap.drivers.stereo_depthai import DeviceNotFound
-    from cgamap.drivers.stereo_replay import SequenceWriter
+def _check_out(args: argparse.Namespace) -> None:
+    """The output folder must be creatable and must not already hold a recording: the
+    writer appends to frames.jsonl and numbers frames from 0, so it would overwrite one."""
+    out = Path(args.out)
+    if args.model == "replay" and args.device and Path(args.device).resolve() == out.resolve():
+        raise UsageError(f"stereo: --out {args.out}: is the recording being replayed; "
+                         "choose another folder")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"stereo: --out {args.out}: exists and is not a folder")
+    if (out / "frames.jsonl").exists():
+        raise UsageError(f"stereo: --out {args.out}: already holds a recording "
+                         "(frames.jsonl); choose a new folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"stereo: --out {args.out}: cannot create ({exc.strerror or exc})"
+                         ) from None
+    if not os.access(out, os.W_OK):
+        raise UsageError(f"stereo: --out {args.out}: folder is not writable")
 
+
+def _check_args(args: argparse.Namespace) -> None:
     if args.count < 1:
         raise UsageError("stereo: --count: must be at least 1")
     if args.stride < 1:
         raise UsageError("stereo: --stride: must be at least 1")
+    if not args.max_depth > 0:  # inf is fine: keep every point
+        raise UsageError(f"stereo: --max-depth: must be positive, got {args.max_depth}")
+    if not (args.timeout > 0 and math.isfinite(args.timeout)):
+        raise UsageError(f"stereo: --timeout: must be a positive number, got {args.timeout}")
+    if args.calib:
+        if Path(args.calib).is_dir():
+            raise UsageError(f"stereo: --calib {args.calib}: is a directory, not a file")
+        if not Path(args.calib).is_file():
+            raise UsageError(f"stereo: --calib {args.calib}: no such file")
+    if args.model == "replay" and args.device and not Path(args.device).is_dir():
+        raise UsageError(f"stereo: --device {args.device}: no such folder (a recording to replay)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from cgamap.drivers.stereo_depthai import DeviceNotFound
+    from cgamap.drivers.stereo_replay import SequenceWriter
+
+    _check_args(args)
     grabber = _grabber(args)
+    _check_out(args)
     mount = getattr(grabber, "mount", None) if args.global_frame else None
     writer = SequenceWriter(args.out, save_points=not args.no_points, stride=args.stride,
                             max_depth=args.max_depth, global_frame=args.global_frame,
@@ -84,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"stereo: {exc}", code=1) from None
     except ValueError as exc:
         raise UsageError(f"stereo: {exc}", code=1) from None
+    except OSError as exc:  # e.g. the disk filled up while writing
+        raise UsageError(f"stereo: --out {args.out}: cannot write ({exc.strerror or exc})",
+                         code=1) from None
     finally:
         grabber.close()
     if writer.count == 0:

@@ -188,3 +188,45 @@ def test_planes_stereo_input_problems(tmp_path, capsys):
     one_line(code, err, "--calib", "is a directory", expect=2)
     code, _, err = run_cli(["planes", "--stereo", left, small, "--calib", bad_yaml], capsys)
     one_line(code, err, "--stereo", "differ in size", expect=2)
+
+
+# -- stereo -----------------------------------------------------------------------------------
+
+def test_stereo_never_writes_into_an_existing_recording(tmp_path, capsys):
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "frames.jsonl").write_text('{"seq": 0}\n')
+    (rec / "calibration.yaml").write_text("fx: 1.0\n")
+    code, _, err = run_cli(["stereo", "--model", "synthetic", "--out", rec], capsys)
+    one_line(code, err, "--out", "already holds a recording", expect=2)
+    code, _, err = run_cli(["stereo", "--model", "replay", "--device", rec, "--out", rec],
+                           capsys)
+    one_line(code, err, "--out", "replayed", expect=2)
+    assert (rec / "frames.jsonl").read_text() == '{"seq": 0}\n'
+    assert (rec / "calibration.yaml").read_text() == "fx: 1.0\n"
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--max-depth", "nan"], "--max-depth"),
+    (["--max-depth", "-1"], "--max-depth"),
+    (["--timeout", "0"], "--timeout"),
+    (["--calib", "no-such-calib.yaml"], "--calib"),
+])
+def test_stereo_refuses_bad_flags(extra, needle, tmp_path, capsys):
+    out = tmp_path / "out"
+    code, _, err = run_cli(["stereo", "--model", "synthetic", "--out", out, *extra], capsys)
+    one_line(code, err, needle, expect=2)
+    assert not out.exists()
+
+
+def test_stereo_bad_out_and_replay_folder(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("keep\n")
+    code, _, err = run_cli(["stereo", "--model", "synthetic", "--out", afile], capsys)
+    one_line(code, err, "--out", "not a folder", expect=2)
+    code, _, err = run_cli(["stereo", "--model", "synthetic", "--out", afile / "sub"], capsys)
+    one_line(code, err, "--out", "cannot create", expect=2)
+    assert afile.read_text() == "keep\n"
+    code, _, err = run_cli(["stereo", "--model", "replay", "--device", tmp_path / "nope",
+                            "--out", tmp_path / "o"], capsys)
+    one_line(code, err, "--device", "no such folder", expect=2)
