@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -58,6 +61,11 @@ def cmd_hand_eye(args: argparse.Namespace) -> int:
     from .handeye import solve
     from .pairs import calibration_document, load_pairs, write_calibration
 
+    if args.out:
+        _check_output("calib hand-eye", "--out", args.out)
+        if Path(args.out).exists() and Path(args.out).resolve() == Path(args.pairs).resolve():
+            raise _usage_error(f"calib hand-eye: --out {args.out}: is the --pairs file; "
+                               "write the calibration to another file")
     try:
         pairs = load_pairs(args.pairs)
     except PairsFileError as exc:
@@ -139,10 +147,54 @@ def _print_report(doc: dict, result) -> None:
             print(f"axis point (base frame, m): {_fmt_vec(axes['axis_point'])}", file=out)
 
 
+def _check_output(cmd: str, flag: str, path: str) -> None:
+    """Refuse an output file that cannot be written before the work that produces it."""
+    p = Path(path)
+    if p.is_dir():
+        raise _usage_error(f"{cmd}: {flag} {path}: is a directory")
+    parent = p.parent
+    if not parent.is_dir():
+        raise _usage_error(f"{cmd}: {flag} {path}: no such directory {str(parent)!r}")
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise _usage_error(f"{cmd}: {flag} {path}: not writable")
+
+
+def _check_collect_args(args: argparse.Namespace) -> None:
+    cmd = "calib collect"
+    least = 3 if args.target == "chessboard" else 2  # OpenCV's chessboard finder needs > 2
+    if args.cols < least or args.rows < least:
+        raise _usage_error(f"{cmd}: --cols/--rows: a {args.target} needs at least {least} x "
+                           f"{least} inner corners, got {args.cols} x {args.rows}")
+    for flag, value in (("--square", args.square), ("--max-reproj", args.max_reproj),
+                        ("--marker", args.marker)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise _usage_error(f"{cmd}: {flag}: must be a positive number, got {value}")
+    for flag, value in (("--pan-range", args.pan_range), ("--tilt-range", args.tilt_range),
+                        ("--settle", args.settle), ("--min-sharpness", args.min_sharpness)):
+        if not (math.isfinite(value) and value >= 0):
+            raise _usage_error(f"{cmd}: {flag}: must be a number >= 0, got {value}")
+    if not all(math.isfinite(v) for v in args.axis_point):
+        raise _usage_error(f"{cmd}: --axis-point: must be finite, got {args.axis_point}")
+    if args.intrinsics and not Path(args.intrinsics).is_file():
+        raise _usage_error(f"{cmd}: --intrinsics {args.intrinsics}: no such file")
+    _check_output(cmd, "--out", args.out)
+    if args.truth:
+        _check_output(cmd, "--truth", args.truth)
+        if Path(args.truth).resolve() == Path(args.out).resolve():
+            raise _usage_error(f"{cmd}: --truth {args.truth}: is the --out file")
+
+
 def cmd_collect(args: argparse.Namespace) -> int:
     from .collect import CollectError, run_collect
+    from .pairs import backup_path
 
+    _check_collect_args(args)
+    previous = Path(args.out).is_file()
     try:
-        return run_collect(args)
+        code = run_collect(args)
     except CollectError as exc:
         raise _usage_error(f"calib collect: {exc}") from None
+    if previous and backup_path(args.out).is_file():
+        print(f"calib collect: the previous {args.out} is kept as {backup_path(args.out)}",
+              file=sys.stderr)
+    return code

@@ -39,21 +39,30 @@ class PairSet:
         return len(self.base_T_head)
 
 
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _matrix(value, where: str) -> np.ndarray:
-    try:
-        m = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise PairsFileError(f"{where}: expected a 4x4 list of numbers") from None
-    if m.shape == (16,):
-        m = m.reshape(4, 4)
-    if m.shape != (4, 4):
-        raise PairsFileError(f"{where}: expected a 4x4 matrix, got shape {m.shape}")
+    # Check the nesting before numpy sees it: a YAML alias bomb nests lists deeply and
+    # np.asarray would try to build the whole thing.
+    rows = value if isinstance(value, list) else None
+    flat = rows is not None and len(rows) == 16 and all(_is_number(v) for v in rows)
+    nested = (rows is not None and len(rows) == 4
+              and all(isinstance(r, list) and len(r) == 4 and all(_is_number(v) for v in r)
+                      for r in rows))
+    if not (flat or nested):
+        shape = (f"{len(rows)} rows" if rows is not None else type(value).__name__)
+        raise PairsFileError(f"{where}: expected a 4x4 matrix (4 lists of 4 numbers), "
+                             f"got {shape}")
+    m = np.asarray(value, dtype=float).reshape(4, 4)
     if not np.all(np.isfinite(m)):
         raise PairsFileError(f"{where}: non-finite value")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise PairsFileError(f"{where}: last row must be [0, 0, 0, 1]")
     R = m[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+    if (np.abs(R).max() > 1.0 + 1e-3 or np.abs(R.T @ R - np.eye(3)).max() > 1e-3
+            or np.linalg.det(R) < 0):
         raise PairsFileError(f"{where}: upper-left 3x3 is not a rotation matrix")
     if np.abs(m[:3, 3]).max() > 100.0:
         raise PairsFileError(f"{where}: translation over 100 m (millimetres instead of metres?)")
@@ -99,6 +108,9 @@ def load_pairs(path: str | Path) -> PairSet:
         text = path.read_text()
     except OSError as exc:
         raise PairsFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise PairsFileError(f"{path}: not a text (JSON or YAML) file: undecodable byte at "
+                             f"offset {exc.start}") from None
     suffix = path.suffix.lower()
     try:
         if suffix == ".json":
@@ -131,7 +143,42 @@ def save_pairs(path: str | Path, pairs: PairSet) -> None:
     path = Path(path)
     text = (json.dumps(doc, indent=1) + "\n" if path.suffix.lower() == ".json"
             else yaml.safe_dump(doc, sort_keys=False))
-    path.write_text(text)
+    write_keeping_previous(path, text)
+
+
+def backup_path(path: str | Path) -> Path:
+    path = Path(path)
+    return path.with_name(path.name + ".bak")
+
+
+def write_keeping_previous(path: str | Path, text: str) -> Path | None:
+    """Write ``text`` to ``path`` atomically (temp file, fsync, rename); a previous file there
+    is kept as ``<path>.bak`` (a collection takes minutes on the robot: a re-run must not
+    destroy the last one).  Returns the backup's path when there was a previous file."""
+    import os
+    import tempfile
+
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(21, "Is a directory", str(path))
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)  # mkstemp makes 0600; give the file the mode open() would
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        backup = None
+        if path.is_file():
+            backup = backup_path(path)
+            os.replace(path, backup)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return backup
 
 
 def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
@@ -199,5 +246,5 @@ def calibration_document(result, n_pairs: int, source: str | None = None,
 def write_calibration(path: str | Path, doc: dict) -> None:
     header = ("# cgamap hand-eye calibration (cgamap calib hand-eye).  head_T_cam maps\n"
               "# left-camera (OpenCV) coordinates into the pan-tilt head frame; metres.\n")
-    Path(path).write_text(header + yaml.safe_dump(doc, sort_keys=False,
-                                                  default_flow_style=None))
+    write_keeping_previous(path, header + yaml.safe_dump(doc, sort_keys=False,
+                                                         default_flow_style=None))

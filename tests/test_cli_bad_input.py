@@ -5,6 +5,7 @@ checks happen before any device is opened); a few run the real entry points as s
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 from pathlib import Path
@@ -230,3 +231,90 @@ def test_stereo_bad_out_and_replay_folder(tmp_path, capsys):
     code, _, err = run_cli(["stereo", "--model", "replay", "--device", tmp_path / "nope",
                             "--out", tmp_path / "o"], capsys)
     one_line(code, err, "--device", "no such folder", expect=2)
+
+
+# -- calib ------------------------------------------------------------------------------------
+
+def _pairs_file(tmp_path: Path, n: int = 6) -> Path:
+    """Noise-free pose pairs about varied axes (a solvable file)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+    X = np.eye(4)
+    X[:3, :3] = Rotation.from_euler("xyz", [0.1, -0.2, 0.3]).as_matrix()
+    X[:3, 3] = [0.05, 0.02, 0.1]
+    base_T_target = np.eye(4)
+    base_T_target[:3, 3] = [1.0, 0.0, 0.5]
+    pairs = []
+    for _ in range(n):
+        H = np.eye(4)
+        H[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix()
+        H[:3, 3] = rng.normal(0, 0.1, 3)
+        C = np.linalg.inv(H @ X) @ base_T_target
+        pairs.append({"base_T_head": H.tolist(), "cam_T_target": C.tolist()})
+    path = tmp_path / "pairs.json"
+    path.write_text(json.dumps({"pairs": pairs}))
+    return path
+
+
+def test_hand_eye_out_never_overwrites_the_pairs(tmp_path, capsys):
+    pairs = _pairs_file(tmp_path)
+    before = pairs.read_text()
+    code, _, err = run_cli(["calib", "hand-eye", "--pairs", pairs, "--out", pairs], capsys)
+    one_line(code, err, "--out", "--pairs file", expect=2)
+    assert pairs.read_text() == before
+
+
+def test_hand_eye_rewrite_keeps_the_previous_calibration(tmp_path, capsys):
+    pairs, out = _pairs_file(tmp_path), tmp_path / "calib.yaml"
+    out.write_text("head_T_cam: old\n")
+    code, _, err = run_cli(["calib", "hand-eye", "--pairs", pairs, "--out", out], capsys)
+    assert code == 0, err
+    assert "head_T_cam:" in out.read_text() and "old" not in out.read_text()
+    assert (tmp_path / "calib.yaml.bak").read_text() == "head_T_cam: old\n"
+    assert oct(out.stat().st_mode & 0o777) != oct(0o600)  # not mkstemp's private mode
+
+
+def test_hand_eye_bad_pairs_files(tmp_path, capsys):
+    binary = tmp_path / "bin.json"
+    binary.write_bytes(bytes(range(128, 256)) * 4)
+    huge = tmp_path / "huge.json"
+    m = [[1e308] * 4] * 3 + [[0, 0, 0, 1]]
+    huge.write_text(json.dumps({"pairs": [{"base_T_head": m, "cam_T_target": m}]}))
+    bomb = tmp_path / "bomb.yaml"
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    lines += [f"a{k}: &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]" for k in range(1, 8)]
+    lines += ["pairs:", "- base_T_head: *a7", "  cam_T_target: *a7"]
+    bomb.write_text("\n".join(lines) + "\n")
+    for path, needle in ((binary, "not a text"), (huge, "rotation"), (bomb, "4x4")):
+        code, _, err = run_cli(["calib", "hand-eye", "--pairs", path], capsys)
+        one_line(code, err, path.name, needle, expect=2)
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--cols", "0"], "--cols"),
+    (["--square", "-1"], "--square"),
+    (["--pan-range", "nan"], "--pan-range"),
+    (["--max-reproj", "-1"], "--max-reproj"),
+    (["--intrinsics", "no-such.yaml"], "--intrinsics"),
+    (["--out", "no/such/dir/p.json"], "--out"),
+    (["--truth", "no/such/dir/t.json"], "--truth"),
+])
+def test_collect_refuses_bad_flags_before_collecting(extra, needle, tmp_path, capsys,
+                                                      monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_cli(["calib", "collect", "--sim", "--sim-joints", "direct", *extra],
+                             capsys)
+    one_line(code, err, needle, expect=2)
+    assert out == ""  # no pose was visited
+
+
+def test_collect_keeps_the_previous_pairs_file(tmp_path, capsys):
+    out = tmp_path / "pairs.json"
+    out.write_text('{"pairs": "from yesterday"}\n')
+    code, _, err = run_cli(["calib", "collect", "--sim", "--sim-joints", "direct", "--poses",
+                            "3", "--out", out], capsys)
+    assert code == 0, err
+    assert (tmp_path / "pairs.json.bak").read_text() == '{"pairs": "from yesterday"}\n'
+    assert "pairs.json.bak" in err
+    assert len(json.loads(out.read_text())["pairs"]) == 3
