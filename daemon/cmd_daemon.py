@@ -195,8 +195,11 @@ def relocalize_via_daemon(args: argparse.Namespace) -> int:
     if not reply.get("ok"):
         raise UsageError(f"relocalize: {reply.get('error', 'failed')}", code=1)
     x, y, th = reply["pose"]
-    print(f"relocalised: {x:.3f} {y:.3f} {math.degrees(th):.1f} deg "
-          f"(score {reply.get('score', 0):.2f})")
+    if getattr(args, "json", False):
+        print(json.dumps(reply))
+    else:
+        print(f"relocalised: {x:.3f} {y:.3f} {math.degrees(th):.1f} deg "
+              f"(score {reply.get('score', 0):.2f})")
     return 0
 
 

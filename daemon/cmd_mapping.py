@@ -123,8 +123,13 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_relocalize(args: argparse.Namespace) -> int:
+    if args.map is None and args.log is None:
+        from cgamap.daemon.cmd_daemon import relocalize_via_daemon
+
+        return relocalize_via_daemon(args)  # no map or log given: ask the running daemon
     if args.map is None or args.log is None:
-        raise UsageError("relocalize: offline mode needs both --map and --log")
+        raise UsageError("relocalize: offline mode needs both --map and --log "
+                         "(give neither to ask the running daemon)")
     if args.trials < 1:
         raise UsageError(f"--trials: must be >= 1, got {args.trials}")
     from cgamap.mapping.mapio import MapFormatError, load_map

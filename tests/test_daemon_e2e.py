@@ -107,6 +107,12 @@ def test_end_to_end(stack):
     assert reloc["class"] == "relocalize"
     if reloc["ok"]:  # found: it must agree with tracking (the twin's robot keeps moving)
         assert abs(reloc["pose"][0] - before[0]) + abs(reloc["pose"][1] - before[1]) < 1.0
+    # the CLI's socket mode: `cgamap relocalize` with neither --map nor --log asks the daemon
+    res = cli("relocalize", "--socket", str(d.socket), "--json")
+    if res.returncode == 0:
+        assert json.loads(res.stdout)["class"] == "relocalize"
+    else:  # "not found" is a daemon answer, reported as one line with exit code 1
+        assert res.returncode == 1 and res.stderr.startswith("cgamap: relocalize:"), res.stderr
     final_map = d.ask("map")
 
     rc, took = d.terminate()
