@@ -18,19 +18,18 @@ import numpy as np
 from cgamap.cga import (
     Multivector,
     apply,
-    blade_index,
     einf,
     hough2d_from_points,
     laser_chain,
     line_from_point_pair,
+    motor_from_pose2d,
+    motor_to_pose2d,
     point_pair,
     sphere_center_radius,
     sphere_from_point_pair,
 )
 
 from .segments import Segments
-
-_E12, _E1P, _E1M, _E2P, _E2M = (blade_index(n) for n in ("e12", "e1+", "e1-", "e2+", "e2-"))
 
 
 @dataclass
@@ -49,29 +48,14 @@ def _xyz(p: np.ndarray) -> np.ndarray:
 
 
 def planar_motor(x: float, y: float, theta: float) -> Multivector:
-    """M = T R of a planar pose written out (the same motor as cga.motor_from_pose2d, pinned
-    by a test): with c, s = cos, sin(theta/2), (a, b) = (c x + s y, c y - s x),
-    M = c - s e12 - a/2 (e1+ + e1-) - b/2 (e2+ + e2-).  One scan needs one motor, and this
-    costs microseconds where the general construction costs two products."""
-    c, s = np.cos(theta / 2.0), np.sin(theta / 2.0)
-    a, b = c * x + s * y, c * y - s * x
-    v = np.zeros(32)
-    v[0] = c
-    v[_E12] = -s
-    v[_E1P] = v[_E1M] = -a / 2.0
-    v[_E2P] = v[_E2M] = -b / 2.0
-    return Multivector(v)
+    """M = T R of a planar pose: the core's closed form (microseconds per scan)."""
+    return motor_from_pose2d(x, y, theta)
 
 
 def motor_planar_pose(M: Multivector) -> tuple[float, float, float]:
-    """(x, y, theta) of a motor that turns about z, read off its coefficients (inverse of
-    :func:`planar_motor`)."""
-    v = M.v
-    c, s = v[0], -v[_E12]
-    n = np.hypot(c, s)
-    c, s = c / n, s / n
-    a, b = -2.0 * v[_E1P] / n, -2.0 * v[_E2P] / n
-    return float(c * a - s * b), float(s * a + c * b), float(2.0 * np.arctan2(s, c))
+    """(x, y, theta) of a motor that turns about z: the inverse of :func:`planar_motor`."""
+    x, y, th = motor_to_pose2d(M)
+    return float(x), float(y), float(th)
 
 
 def laser_motor(pose, mount=None) -> Multivector:

@@ -94,8 +94,11 @@ def test_cli_usage_errors(tmp_path, capsys):
     assert main(["map", "build", "--log", str(tmp_path / "nope.log"), "--out",
                  str(tmp_path)]) == 2
     assert "no such file" in capsys.readouterr().err
-    assert main(["relocalize", "--trials", "3"]) == 2
+    assert main(["relocalize", "--trials", "3", "--map", str(tmp_path / "m.json")]) == 2
     assert "--map and --log" in capsys.readouterr().err
+    # neither --map nor --log: the daemon is asked; none runs here, so one clear line
+    assert main(["relocalize", "--socket", str(tmp_path / "no.sock")]) != 0
+    assert "cannot connect to cgamapd" in capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text('{"format": "cgamap.linemap", "version": 1, "segments": [{"a": [0]}]}')
     log = tmp_path / "a.log"
