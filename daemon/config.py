@@ -70,10 +70,23 @@ def _port(v) -> str | None:
     return None if 0 <= v <= 65535 else f"must be a TCP port 0..65535, got {v}"
 
 
+def _file_mode(v) -> str | None:
+    if 0 <= v <= 0o777:
+        return None
+    return (f"must be a file mode 0..0o777, got {v} (write it in octal with a leading 0, "
+            "e.g. 0660)")
+
+
+def _non_empty(v) -> str | None:
+    return None if v.strip() else "must not be empty"
+
+
 def check_url(url: str) -> str | None:
     """A device URL: ``serial:///dev/ttyUSB0?baudrate=38400``, ``tcp://host:port``,
     ``sim://name``, ``file:///path/log.gz``, ``usb://`` (first device of the model)."""
     parts = urlsplit(url)
+    if not parts.scheme and url.startswith("/"):
+        return f"a bare device path {url!r}: write serial://{url}"
     if parts.scheme not in URL_SCHEMES:
         return f"unknown scheme {parts.scheme!r} in {url!r} (one of {', '.join(URL_SCHEMES)})"
     if parts.scheme in ("serial", "file") and not parts.path.strip("/"):
@@ -121,15 +134,15 @@ DEVICE = Spec("record", fields={
 SCHEMA = Spec("record", fields={
     "log_level": Spec("str", default="info", choices=LOG_LEVELS),
     "paths": Spec("record", default={}, fields={
-        "state_dir": Spec("str", default="/var/lib/cgamap"),
-        "runtime_dir": Spec("str", default="/run/cgamap"),
-        "socket": Spec("str", default="cgamapd.sock"),
+        "state_dir": Spec("str", default="/var/lib/cgamap", check=_non_empty),
+        "runtime_dir": Spec("str", default="/run/cgamap", check=_non_empty),
+        "socket": Spec("str", default="cgamapd.sock", check=_non_empty),
     }),
     "server": Spec("record", default={}, fields={
         "tcp": Spec("bool", default=False),
         "tcp_host": Spec("str", default="127.0.0.1"),
         "tcp_port": Spec("int", default=2950, check=_port),
-        "socket_mode": Spec("int", default=0o660),
+        "socket_mode": Spec("int", default=0o660, check=_file_mode),
         "max_clients": Spec("int", default=16, check=_positive),
     }),
     "checkpoint": Spec("record", default={}, fields={
@@ -173,6 +186,14 @@ def _type_name(v: Any) -> str:
             float: "number", type(None): "null"}.get(type(v), type(v).__name__)
 
 
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _validate(spec: Spec, value: Any, path: str) -> Any:
     if spec.kind == "any":
         return value
@@ -180,7 +201,11 @@ def _validate(spec: Spec, value: Any, path: str) -> Any:
     if not isinstance(value, ok) or (spec.kind in ("int", "float") and isinstance(value, bool)):
         want = {"record": "mapping", "map": "mapping", "float": "number", "int": "integer",
                 "str": "string", "bool": "boolean (true/false)"}.get(spec.kind, spec.kind)
-        raise ConfigError(path, f"expected {want}, got {_type_name(value)} {value!r}"[:160])
+        hint = ""
+        if spec.kind == "float" and isinstance(value, str) and _looks_numeric(value):
+            hint = " (YAML reads 1e-3 as text: write 1.0e-3)"
+        raise ConfigError(path, f"expected {want}, got {_type_name(value)} {value!r}"[:160]
+                          + hint)
     if spec.kind == "float":
         value = float(value)
         if not math.isfinite(value):
@@ -247,6 +272,10 @@ def _check_devices(cfg: dict, base: Path) -> None:
             he = he if he.is_absolute() else base / he
             dev["hand_eye"] = str(he)
             dev["head_T_cam"] = load_hand_eye(he, f"{path}.hand_eye")
+    sup = cfg["supervisor"]
+    if sup["backoff_initial"] > sup["backoff_max"]:
+        raise ConfigError("supervisor.backoff_initial", f"{sup['backoff_initial']} is above "
+                          f"backoff_max {sup['backoff_max']}")
     roles = [d["role"] for d in cfg["devices"].values() if d["enabled"]]
     for role in ("laser", "odometry", "pantilt", "camera"):
         if roles.count(role) > 1:
@@ -255,10 +284,14 @@ def _check_devices(cfg: dict, base: Path) -> None:
 
 def load_hand_eye(path: Path, key: str) -> list[list[float]]:
     """``head_T_cam`` (4x4, rows) from a ``calib hand-eye`` YAML file."""
+    if path.is_dir():
+        raise ConfigError(key, f"calibration file {str(path)!r} is a directory")
     if not path.is_file():
         raise ConfigError(key, f"calibration file {str(path)!r} not found")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
+    except UnicodeDecodeError:
+        raise ConfigError(key, f"{str(path)!r} is not a text (YAML) file") from None
     except (yaml.YAMLError, OSError) as exc:
         raise ConfigError(key, f"cannot read {str(path)!r}: {str(exc).splitlines()[0]}") from None
     m = data.get("head_T_cam") if isinstance(data, dict) else None
@@ -287,12 +320,20 @@ def validate(raw: Any, base: Path | None = None) -> dict:
 def load(path: str | os.PathLike) -> dict:
     """Read and validate a YAML config file (ConfigError for every kind of problem)."""
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError("", f"cannot read {str(p)!r}: is a directory, not a config file")
     try:
         text = p.read_text()
     except OSError as exc:
-        raise ConfigError("", f"cannot read {str(p)!r}: {exc.strerror}") from None
+        raise ConfigError("", f"cannot read {str(p)!r}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError("", f"cannot read {str(p)!r}: not a text (YAML) file (undecodable "
+                          f"byte at offset {exc.start})") from None
     try:
-        raw = yaml.safe_load(text)
+        raw = yaml.load(text, Loader=_UniqueKeyLoader)
+    except DuplicateKeyError as exc:
+        raise ConfigError(exc.key_path, f"duplicate key at line {exc.line} (the first one "
+                          "would be ignored)") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""
@@ -303,6 +344,35 @@ def load(path: str | os.PathLike) -> dict:
     cfg = validate(raw, p.resolve().parent)
     cfg["_file"] = str(p.resolve())
     return cfg
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    def __init__(self, key_path: str, line: int):
+        super().__init__(f"{key_path}: duplicate key at line {line}")
+        self.key_path, self.line = key_path, line
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping (PyYAML keeps the last one
+    silently: a second ``devices:`` block would drop the first)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: set = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                dup = key in seen
+            except TypeError:  # an unhashable key: SafeLoader reports it below
+                dup = False
+            if dup:
+                raise DuplicateKeyError(str(key), key_node.start_mark.line + 1)
+            try:
+                seen.add(key)
+            except TypeError:
+                pass
+        return super().construct_mapping(node, deep=deep)
 
 
 def resolve_paths(cfg: dict) -> tuple[Path, Path]:

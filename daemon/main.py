@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
+import os
+import stat
 import sys
+from pathlib import Path
 
 from cgamap.daemon import config as config_mod
 
@@ -43,17 +47,100 @@ def default_config_path() -> str:
     return f"{d}/robot.yaml" if d else DEFAULT_CONFIG
 
 
+EX_USAGE, EX_NOINPUT, EX_CANTCREAT = 64, 66, 73  # sysexits.h
+
+
+class StartupError(Exception):
+    """A problem found before the daemon starts: one line, exit ``code``."""
+
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+def check_replay(path: str) -> None:
+    """The replay input must be a readable, complete recording with messages in it: the
+    supervisor would otherwise retry a missing or cut file forever (and replay its start
+    again each time)."""
+    import gzip
+    import zlib
+
+    p = Path(path)
+    if p.is_dir():
+        raise StartupError(f"--replay {path}: is a directory, not a recording", EX_NOINPUT)
+    if not p.is_file():
+        raise StartupError(f"--replay {path}: no such file", EX_NOINPUT)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(2)
+        if not head:
+            raise StartupError(f"--replay {path}: empty file", EX_NOINPUT)
+        if head == b"\x1f\x8b":  # gzipped CARMEN log: the whole stream must be intact
+            with gzip.open(p, "rb") as f:
+                while f.read(1 << 20):
+                    pass
+    except StartupError:
+        raise
+    except OSError as exc:
+        raise StartupError(f"--replay {path}: cannot read ({exc.strerror or exc})",
+                           EX_NOINPUT) from None
+    except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
+        raise StartupError(f"--replay {path}: damaged gzip file ({exc})", EX_NOINPUT) from None
+    from cgamap.daemon.recording import read_messages
+
+    try:
+        found = next(iter(read_messages(p)), None) is not None
+    except Exception as exc:  # noqa: BLE001 - any reader failure is "not a recording"
+        raise StartupError(f"--replay {path}: cannot read as MCAP or CARMEN log "
+                           f"({type(exc).__name__}: {exc})"[:300], EX_NOINPUT) from None
+    if not found:
+        raise StartupError(f"--replay {path}: no device messages in it (not an MCAP "
+                           "recording or a CARMEN log?)", EX_NOINPUT)
+
+
+def check_paths(state_dir: Path, socket_path: Path) -> None:
+    """The state directory must be usable (else the maps would silently not be saved) and
+    the socket path must not be some other file (the server unlinks a stale socket)."""
+    if state_dir.exists() and not state_dir.is_dir():
+        raise StartupError(f"state directory {state_dir}: exists and is not a directory",
+                           EX_CANTCREAT)
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StartupError(f"state directory {state_dir}: cannot create "
+                           f"({exc.strerror or exc})", EX_CANTCREAT) from None
+    if not os.access(state_dir, os.W_OK | os.X_OK):
+        raise StartupError(f"state directory {state_dir}: not writable", EX_CANTCREAT)
+    if socket_path.is_symlink() or (socket_path.exists()
+                                    and not stat.S_ISSOCK(socket_path.stat().st_mode)):
+        raise StartupError(f"socket {socket_path}: a file that is not a socket is there; "
+                           "refusing to replace it", EX_CANTCREAT)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     path = args.check_config or args.config or default_config_path()
     try:
         cfg = config_mod.load(path)
     except config_mod.ConfigError as exc:
-        print(f"cgamapd: {path}: {exc}", file=sys.stderr)
+        where = f"{path}: {exc}" if exc.path else exc.problem  # file-level: names the file
+        print(f"cgamapd: {where}", file=sys.stderr)
         return config_mod.EX_CONFIG
     if args.check_config:
         print(f"cgamapd: {path}: ok ({len(cfg['devices'])} devices)")
         return 0
+    try:
+        if not (math.isfinite(args.replay_rate) and args.replay_rate >= 0):
+            raise StartupError(f"--replay-rate: must be a number >= 0, got {args.replay_rate}",
+                               EX_USAGE)
+        if args.replay:
+            check_replay(args.replay)
+        state, sock = config_mod.resolve_paths(cfg)
+        check_paths(Path(args.state_dir) if args.state_dir else state,
+                    Path(args.socket) if args.socket else sock)
+    except StartupError as exc:
+        print(f"cgamapd: {exc}", file=sys.stderr)
+        return exc.code
     level = (args.log_level or cfg["log_level"]).upper()
     logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")  # journald adds the time

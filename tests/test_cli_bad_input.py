@@ -5,9 +5,11 @@ checks happen before any device is opened); a few run the real entry points as s
 
 from __future__ import annotations
 
+import gzip
 import json
 import socket
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -318,3 +320,85 @@ def test_collect_keeps_the_previous_pairs_file(tmp_path, capsys):
     assert (tmp_path / "pairs.json.bak").read_text() == '{"pairs": "from yesterday"}\n'
     assert "pairs.json.bak" in err
     assert len(json.loads(out.read_text())["pairs"]) == 3
+
+
+# -- cgamapd: config and start-up ------------------------------------------------------------
+
+def cgamapd(args: list, timeout: float = 20.0) -> subprocess.CompletedProcess:
+    return run_proc([sys.executable, "-m", "cgamap.daemon.main", *map(str, args)], timeout)
+
+
+def test_config_file_problems_exit_78(tmp_path):
+    from cgamap.daemon import config
+
+    cases = {
+        "binary.yaml": (bytes(range(128, 256)), "not a text"),
+        "dup.yaml": (b"log_level: info\nlog_level: debug\n", "duplicate key"),
+        "mode.yaml": (b"server:\n  socket_mode: 99999\n", "server.socket_mode"),
+        "backoff.yaml": (b"supervisor:\n  backoff_initial: 5\n  backoff_max: 1\n",
+                         "supervisor.backoff_initial"),
+        "empty_path.yaml": (b'paths:\n  state_dir: ""\n', "paths.state_dir"),
+        "float_text.yaml": (b"checkpoint:\n  interval: 1e3\n", "1.0e-3"),
+        "bare_path.yaml": (b"devices:\n  l:\n    role: laser\n    model: hokuyo\n"
+                           b"    url: /dev/ttyACM0\n", "serial:///dev/ttyACM0"),
+        "he_dir.yaml": (b"devices:\n  h:\n    role: pantilt\n    model: dynamixel\n"
+                        b"    url: tcp://h:1\n    hand_eye: .\n", "is a directory"),
+    }
+    for name, (text, needle) in cases.items():
+        (tmp_path / name).write_bytes(text)
+        with pytest.raises(config.ConfigError) as info:
+            config.load(tmp_path / name)
+        assert needle in str(info.value) and "\n" not in str(info.value), (name, info.value)
+    proc = cgamapd(["--check-config", tmp_path / "binary.yaml"])
+    assert proc.returncode == 78 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "binary.yaml" in proc.stderr
+    proc = cgamapd(["--check-config", tmp_path])
+    assert proc.returncode == 78 and proc.stderr.count("\n") == 1, proc.stderr
+
+
+@pytest.fixture
+def minimal_config(tmp_path) -> Path:
+    cfg = tmp_path / "cgamapd.yaml"
+    cfg.write_text(f"log_level: warning\npaths:\n  state_dir: {tmp_path / 'state'}\n"
+                   f"  runtime_dir: {tmp_path / 'run'}\ndevices: {{}}\n")
+    return cfg
+
+
+def test_cgamapd_refuses_bad_replay_input_instead_of_retrying_forever(tmp_path,
+                                                                      minimal_config):
+    log = REPO.parent / "shared" / "data" / "laser" / "intel-corrected.log.gz"
+    cut = tmp_path / "cut.log.gz"
+    if log.is_file():
+        cut.write_bytes(log.read_bytes()[:50_000])
+    else:  # a gzip stream cut short is enough
+        cut.write_bytes(gzip.compress(b"ODOM 0 0 0 0 0 0 0 host 0\n" * 5000)[:-20])
+    garbage = tmp_path / "garbage.log"
+    garbage.write_bytes(bytes(range(256)) * 20)
+    empty = tmp_path / "empty.log"
+    empty.write_bytes(b"")
+    cases = [(tmp_path / "nope.log", "no such file"), (tmp_path, "is a directory"),
+             (empty, "empty"), (cut, "damaged gzip"), (garbage, "no device messages")]
+    for path, needle in cases:
+        proc = cgamapd(["-c", minimal_config, "--replay", path, "--exit-after-replay"])
+        assert proc.returncode == 66, (path, proc.stderr)
+        assert proc.stderr.count("\n") == 1 and needle in proc.stderr, proc.stderr
+    proc = cgamapd(["-c", minimal_config, "--replay", garbage, "--replay-rate", "-1"])
+    assert proc.returncode == 64 and "--replay-rate" in proc.stderr
+
+
+def test_cgamapd_never_replaces_a_file_at_the_socket_path(tmp_path, minimal_config):
+    precious = tmp_path / "notes.txt"
+    precious.write_text("keep me\n")
+    proc = cgamapd(["-c", minimal_config, "--socket", precious])
+    assert proc.returncode == 73 and "not a socket" in proc.stderr, proc.stderr
+    assert precious.read_text() == "keep me\n"
+
+
+def test_cgamapd_refuses_an_unusable_state_dir(tmp_path, minimal_config):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for state in (afile, afile / "sub"):
+        proc = cgamapd(["-c", minimal_config, "--state-dir", state])
+        assert proc.returncode == 73 and "state directory" in proc.stderr, proc.stderr
+        assert proc.stderr.count("\n") == 1
+    assert afile.read_text() == "x"
