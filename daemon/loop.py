@@ -276,9 +276,14 @@ class MappingLoop:
         head = next((d for d in devices.values() if d["role"] == "pantilt"), None)
         self.camera_mount = None
         if head is not None:
-            eye = head.get("head_T_cam")
-            eye = [r[3] for r in eye[:3]] if eye else head["eye_offset"]
-            self.camera_mount = {"t_axis": tuple(head["axis_point"]), "t_eye": tuple(eye)}
+            H = head.get("head_T_cam")
+            if H:  # a hand-eye calibration: the camera's offset and its rotation
+                self.camera_mount = {"t_axis": tuple(head["axis_point"]),
+                                     "t_eye": tuple(r[3] for r in H[:3]),
+                                     "R_eye": tuple(tuple(r[:3]) for r in H[:3])}
+            else:
+                self.camera_mount = {"t_axis": tuple(head["axis_point"]),
+                                     "t_eye": tuple(head["eye_offset"])}
         self.map3d_enabled = bool(m["map3d"])
         self.params3d = dict(m["params3d"])
         self.planes = PlaneMap()

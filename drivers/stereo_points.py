@@ -81,12 +81,30 @@ class CameraMount:
 
     t_axis: tuple[float, float, float] = (0.0, 0.0, 0.5)
     t_eye: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Rotation of the optical frame in the head frame (columns: the optical x, y, z axes in
+    # head coordinates), e.g. from a hand-eye calibration's head_T_cam; None: the nominal
+    # R_HEAD_OPTICAL (optical z along the head's x).
+    R_eye: tuple[tuple[float, float, float], ...] | None = None
 
     @classmethod
     def from_dict(cls, d: dict | None) -> CameraMount:
         d = dict(d or {})
+        R = d.get("R_eye")
         return cls(t_axis=tuple(float(v) for v in d.get("t_axis", cls.t_axis)),
-                   t_eye=tuple(float(v) for v in d.get("t_eye", cls.t_eye)))
+                   t_eye=tuple(float(v) for v in d.get("t_eye", cls.t_eye)),
+                   R_eye=None if R is None else tuple(tuple(float(v) for v in row) for row in R))
+
+    @classmethod
+    def from_head_T_cam(cls, t_axis, head_T_cam) -> CameraMount:
+        """Mount from the axis point and a hand-eye result (4x4 head_T_cam, rows)."""
+        H = np.asarray(head_T_cam, dtype=float)
+        return cls(t_axis=tuple(float(v) for v in t_axis),
+                   t_eye=tuple(float(v) for v in H[:3, 3]),
+                   R_eye=tuple(tuple(float(v) for v in row) for row in H[:3, :3]))
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return R_HEAD_OPTICAL if self.R_eye is None else np.asarray(self.R_eye, dtype=float)
 
 
 def camera_motor(pose: tuple[float, float, float] | Multivector = (0.0, 0.0, 0.0),
@@ -110,7 +128,7 @@ def camera_motor(pose: tuple[float, float, float] | Multivector = (0.0, 0.0, 0.0
         R_pos = rotor(np.array([0.0, 0.0, 1.0]), th)
     R_pan = rotor(np.array([0.0, 0.0, 1.0]), pan)
     R_tilt = rotor(np.array([0.0, 1.0, 0.0]), tilt)
-    R_eye = motor_from_pose(np.zeros(3), R_HEAD_OPTICAL)
+    R_eye = motor_from_pose(np.zeros(3), mount.rotation)
     return camera_chain(T_pos, R_pos, R_pan, R_tilt, np.asarray(mount.t_axis, dtype=float),
                         np.asarray(mount.t_eye, dtype=float), R_eye=R_eye)
 
@@ -137,7 +155,7 @@ def camera_matrix_chain(pose: tuple[float, float, float], pan: float = 0.0, tilt
 
     x, y, th = pose
     return (h(rz(th), (x, y, 0.0)) @ h(t=mount.t_axis) @ h(rz(pan)) @ h(ry(tilt))
-            @ h(t=mount.t_eye) @ h(R_HEAD_OPTICAL))
+            @ h(t=mount.t_eye) @ h(mount.rotation))
 
 
 def points_to_global(points_c: np.ndarray, M_GC: Multivector) -> np.ndarray:

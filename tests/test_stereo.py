@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from cgamap.cga import apply_points_sandwich
+from cgamap.cga import apply_points_sandwich, motor_to_matrix
 from cgamap.drivers.messages import PanTiltState
 from cgamap.drivers.stereo import (
     StereoFrame,
@@ -254,3 +254,22 @@ def test_frame_points_from_depth_or_disparity():
                      depth=np.full((20, 20), 2.0))
     assert np.allclose(frame_points(f1), frame_points(f2))
     assert np.allclose(frame_points(f1)[:, 2], 2.0)
+
+
+def test_mount_from_hand_eye_uses_its_rotation():
+    """A hand-eye result's rotation (not only its offset) reaches the camera chain."""
+    from cgamap.cga.selfcheck import random_rotation
+
+    R = random_rotation(np.random.default_rng(5), 1)[0]
+    H = np.eye(4)
+    H[:3, :3], H[:3, 3] = R, (0.06, 0.03, 0.05)
+    mount = CameraMount.from_head_T_cam((0.1, 0.0, 0.9), H)
+    assert np.allclose(mount.rotation, R)
+    M = camera_motor((1.0, 2.0, 0.4), 0.2, -0.1, mount)
+    expect = camera_matrix_chain((1.0, 2.0, 0.4), 0.2, -0.1, mount)
+    assert np.allclose(motor_to_matrix(M), expect, atol=1e-9)
+    # the chain ends with the calibrated rotation: optical z is R's third column, turned
+    nominal = camera_matrix_chain((1.0, 2.0, 0.4), 0.2, -0.1,
+                                  CameraMount(t_axis=(0.1, 0.0, 0.9), t_eye=(0.06, 0.03, 0.05)))
+    assert not np.allclose(expect[:3, :3], nominal[:3, :3])
+    assert CameraMount.from_dict({"t_axis": [0, 0, 1], "R_eye": R.tolist()}).R_eye is not None
