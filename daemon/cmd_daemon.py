@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 from cgamap.daemon.cli import UsageError
@@ -36,8 +37,29 @@ def _ask(args: argparse.Namespace, cmd: str, **kw) -> dict:
     except DaemonUnavailable as exc:
         raise UsageError(f"{cmd}: {exc}", code=69) from None  # EX_UNAVAILABLE
     if reply.get("class") == "error":
-        raise UsageError(f"{cmd}: {reply['error']}", code=1)
+        error = str(reply["error"])
+        error = error[len(cmd) + 2:] if error.startswith(f"{cmd}: ") else error
+        raise UsageError(f"{cmd}: {error}", code=1)
     return reply
+
+
+def _positive(cmd: str, flag: str, value: float) -> None:
+    if not (math.isfinite(value) and value > 0):
+        raise UsageError(f"{cmd}: {flag}: must be a positive number, got {value}")
+
+
+def _output_file(cmd: str, flag: str, path: Path) -> None:
+    """Refuse an output path the writer would fail on (with a traceback) or that is a
+    directory; the parent folder is created as the exporters do."""
+    if path.is_dir():
+        raise UsageError(f"{cmd}: {flag} {path}: is a directory")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"{cmd}: {flag} {path}: cannot create its folder "
+                         f"({exc.strerror or exc})") from None
+    if not os.access(path.parent, os.W_OK):
+        raise UsageError(f"{cmd}: {flag} {path}: folder is not writable")
 
 
 def _add_socket(p: argparse.ArgumentParser) -> None:
@@ -152,6 +174,9 @@ def run_status(args: argparse.Namespace) -> int:
 def run_watch(args: argparse.Namespace) -> int:
     from cgamap.daemon.server import DaemonUnavailable, stream
 
+    if args.count < 0:
+        raise UsageError(f"watch: --count: must be >= 0, got {args.count}")
+    _positive("watch", "--interval", args.interval)
     n = 0
     try:
         for obj in stream(socket_path(args), timeout=None, raw=args.raw,
@@ -168,10 +193,20 @@ def run_watch(args: argparse.Namespace) -> int:
 
 
 def run_map_export(args: argparse.Namespace) -> int:
+    import cv2
     from cgamap.daemon.export import export
 
-    reply = _ask(args, "map")
     out = Path(args.output or f"map.{args.format}")
+    if args.resolution is not None:
+        _positive("map export", "--resolution", args.resolution)
+        if args.resolution < 0.001:  # a finer grid than 1 mm is an image too big to write
+            raise UsageError(f"map export: --resolution: {args.resolution} m per pixel is "
+                             "finer than 1 mm")
+    if args.format in ("png", "pgm") and out.suffix.lower() != f".{args.format}":
+        raise UsageError(f"map export: --output {out}: a {args.format} file needs the "
+                         f".{args.format} extension")
+    _output_file("map export", "--output", out)
+    reply = _ask(args, "map")
     kw = {}
     if args.format == "png":
         if args.resolution:
@@ -183,7 +218,14 @@ def run_map_export(args: argparse.Namespace) -> int:
             kw["trajectory"] = np.asarray(rows, dtype=float)[:, 2:5]
     elif args.format == "pgm" and args.resolution:
         kw["resolution"] = args.resolution
-    files = export(reply, args.format, out, **kw)
+    try:
+        with warnings.catch_warnings():  # a failure is reported below in one line
+            warnings.simplefilter("ignore", RuntimeWarning)
+            files = export(reply, args.format, out, **kw)
+    except OSError as exc:
+        raise UsageError(f"map export: --output {out}: {exc.strerror or exc}", 1) from None
+    except (ValueError, MemoryError, cv2.error) as exc:
+        raise UsageError(f"map export: {type(exc).__name__}: {exc}"[:200], 1) from None
     print(" ".join(str(f) for f in files))
     return 0
 
@@ -204,6 +246,12 @@ def relocalize_via_daemon(args: argparse.Namespace) -> int:
 
 
 def run_set_pose(args: argparse.Namespace) -> int:
+    for name, value in (("x", args.x), ("y", args.y)):
+        if not (math.isfinite(value) and abs(value) <= 1e6):
+            raise UsageError(f"set-pose: {name}: must be a finite position within 1000 km, "
+                             f"got {value}")
+    if not math.isfinite(args.theta_deg):
+        raise UsageError(f"set-pose: theta_deg: must be finite, got {args.theta_deg}")
     reply = _ask(args, "set-pose", x=args.x, y=args.y, theta=math.radians(args.theta_deg))
     x, y, th = reply["pose"]
     print(f"pose set: {x:.3f} {y:.3f} {math.degrees(th):.1f} deg")
@@ -214,6 +262,12 @@ def run_record(args: argparse.Namespace) -> int:
     from cgamap.daemon.recording import McapRecorder
 
     out = Path(args.output)
+    if not (math.isfinite(args.duration) and args.duration >= 0):
+        raise UsageError(f"record: --duration: must be a number of seconds >= 0 (0: until "
+                         f"Ctrl-C), got {args.duration}")
+    if out.exists() and not out.is_dir():  # never overwrite an earlier recording
+        raise UsageError(f"record: {out}: exists; give a new file name")
+    _output_file("record", "output", out)
     stop = threading.Event()
     old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     deadline = time.monotonic() + args.duration if args.duration > 0 else math.inf
@@ -244,14 +298,23 @@ def _record_daemon(args, rec, stop: threading.Event, deadline: float) -> None:
             from None
     with s:
         s.sendall(b'{"cmd": "watch", "raw": true, "interval": 5}\n')
-        f = s.makefile("rb")
+        # recv with our own line buffer: a buffered reader is unusable after one timeout
+        # ("cannot read from timed out object"), and a quiet second is normal here
+        s.settimeout(0.5)
+        buf = b""
         while not stop.is_set() and time.monotonic() < deadline:
-            try:
-                line = f.readline()
-            except TimeoutError:
+            if b"\n" not in buf:
+                try:
+                    chunk = s.recv(1 << 16)
+                except TimeoutError:
+                    continue
+                if not chunk:
+                    break
+                buf += chunk
                 continue
-            if not line:
-                break
+            line, buf = buf.split(b"\n", 1)
+            if not line.strip():
+                continue
             obj = json.loads(line)
             if obj.get("class") == "raw":
                 rec.write_json(obj["topic"], obj["schema"], obj["body"], obj["stamp_ns"])
@@ -289,10 +352,24 @@ def run_demo(args: argparse.Namespace) -> int:
 
     cfg_path = Path(args.config) if args.config else default_config()
     try:
-        duration = args.duration or float(config_mod.load(cfg_path)["sim"].get("duration", 60))
+        cfg = config_mod.load(cfg_path)
     except config_mod.ConfigError as exc:
         raise UsageError(f"demo: {cfg_path}: {exc}", config_mod.EX_CONFIG) from None
+    if args.duration is not None:
+        _positive("demo", "--duration", args.duration)
+    try:
+        duration = args.duration or float(cfg["sim"].get("duration", 60))
+    except (TypeError, ValueError):
+        raise UsageError(f"demo: {cfg_path}: sim.duration: expected a number", 78) from None
+    if args.world is not None:
+        from cgamap.drivers.sim.world import WORLDS
+
+        if args.world not in WORLDS:
+            raise UsageError(f"demo: --world {args.world!r}: unknown world (choose from "
+                             f"{', '.join(sorted(WORLDS))})")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"demo: --out {out}: exists and is not a folder")
     report = demo(out, duration, cfg_path, args.world, camera=not args.no_camera)
     t = report.get("truth", {})
     print(f"\npose error vs truth: ATE {t.get('ate_trans_m', float('nan')):.3f} m / "

@@ -402,3 +402,72 @@ def test_cgamapd_refuses_an_unusable_state_dir(tmp_path, minimal_config):
         assert proc.returncode == 73 and "state directory" in proc.stderr, proc.stderr
         assert proc.stderr.count("\n") == 1
     assert afile.read_text() == "x"
+
+
+# -- daemon client commands -------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, needle", [
+    (["watch", "--count", "-1"], "--count"),
+    (["watch", "--interval", "nan"], "--interval"),
+    (["map", "export", "--format", "png", "--resolution", "-1"], "--resolution"),
+    (["map", "export", "--format", "pgm", "--resolution", "1e-9"], "--resolution"),
+    (["map", "export", "--format", "png", "-o", "{tmp}/map.txt"], ".png"),
+    (["map", "export", "--format", "json", "-o", "{tmp}"], "is a directory"),
+    (["set-pose", "nan", "0", "0"], "x"),
+    (["set-pose", "0", "1e308", "0"], "y"),
+    (["record", "{tmp}", "--duration", "1"], "is a directory"),
+    (["record", "{tmp}/r.mcap", "--duration", "-1"], "--duration"),
+    (["demo", "--duration", "-1", "--out", "{tmp}/demo"], "--duration"),
+    (["demo", "--world", "atlantis", "--out", "{tmp}/demo"], "--world"),
+    (["demo", "--config", "{tmp}/nope.yaml", "--duration", "1", "--out", "{tmp}/demo"],
+     "nope.yaml"),
+])
+def test_daemon_client_commands_refuse_bad_input(argv, needle, tmp_path, capsys):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    sock = ["--socket", str(tmp_path / "no.sock")] if argv[0] != "demo" else []
+    code, _, err = run_cli(argv + sock, capsys)
+    one_line(code, err, needle)
+    assert code in (2, 78), err
+    assert not (tmp_path / "demo").exists()
+
+
+def test_record_never_overwrites_and_survives_a_quiet_daemon(tmp_path, capsys):
+    """A fake daemon that sends a message, stays quiet for longer than the client's socket
+    timeout, then sends another: both are recorded (a buffered reader broke after one
+    timeout), and an existing recording is never overwritten."""
+    import threading
+    import time
+
+    old = tmp_path / "old.mcap"
+    old.write_bytes(b"earlier recording")
+    code, _, err = run_cli(["record", old, "--socket", tmp_path / "no.sock"], capsys)
+    one_line(code, err, "exists", expect=2)
+    assert old.read_bytes() == b"earlier recording"
+
+    path = tmp_path / "d.sock"
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(str(path))
+    srv.listen(1)
+    srv.settimeout(10)
+
+    def serve() -> None:
+        conn, _ = srv.accept()
+        with conn:
+            conn.recv(4096)
+            msg = {"class": "raw", "topic": "/odom", "schema": "foxglove.PoseInFrame",
+                   "body": {"x": 1}, "stamp_ns": 1}
+            conn.sendall(json.dumps(msg).encode() + b"\n")
+            time.sleep(1.6)
+            conn.sendall(json.dumps({**msg, "stamp_ns": 2}).encode() + b"\n")
+            time.sleep(1.0)
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        code, out, err = run_cli(["record", tmp_path / "new.mcap", "--socket", path,
+                                  "--duration", "2.5"], capsys)
+    finally:
+        t.join(10)
+        srv.close()
+    assert code == 0, err
+    assert "2 messages" in out
