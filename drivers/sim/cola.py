@@ -118,26 +118,21 @@ class ColaTwin(TwinControl):
         self._next_due = time.monotonic()
         self._t0 = time.monotonic()
 
-    # -- faults (truncate, stall: TwinControl; executed by the twin thread) -----------------
-    def unplug(self) -> None:
+    # -- faults (truncate, stall, unplug, replug: TwinControl) -------------------------------
+    def _unplug(self) -> None:
         """Close the connections and stop listening."""
-        self._request("unplug")
+        for c in self.clients:
+            with contextlib.suppress(OSError):
+                c.sock.close()
+        self.clients = []
+        if self.listener is not None:
+            self.listener.close()
+            self.listener = None
+        self.stats["unplugs"] += 1
 
-    def replug(self) -> None:
+    def _replug(self) -> None:
         """Listen again on the same port; the device has been power-cycled."""
-        self._request("replug")
-
-    def _do(self, what: str) -> None:
-        if what == "unplug":
-            for c in self.clients:
-                with contextlib.suppress(OSError):
-                    c.sock.close()
-            self.clients = []
-            if self.listener is not None:
-                self.listener.close()
-                self.listener = None
-            self.stats["unplugs"] += 1
-        elif what == "replug" and self.listener is None:
+        if self.listener is None:
             self._listen(self.port)
             self._power_on()
             self.stats["replugs"] += 1
@@ -145,7 +140,7 @@ class ColaTwin(TwinControl):
     # -- life cycle (start, __enter__/__exit__: TwinControl) ----------------------------------
     def stop(self) -> None:
         super().stop()
-        self._do("unplug")
+        self._unplug()
 
     def _run(self) -> None:
         while self._running:

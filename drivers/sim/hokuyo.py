@@ -189,19 +189,25 @@ class HokuyoTwin(TwinControl):
 
     stop = close   # the name the other twins use
 
-    # -- faults (truncate: the next scan replies cut short; stall: TwinControl) --------------
+    # -- faults (truncate: the next scan replies cut short; stall, unplug, replug: TwinControl)
     def unstable(self, n: int = 1) -> None:
         """Answer the next ``n`` scans of the stream with status 0M (sensor unstable)."""
         with self._lock:
             self._unstable += n
 
     def disconnect(self) -> None:
-        """Unplug: the pty pair closes and its path disappears."""
-        with self._lock:
-            self.dev.disconnect()
+        """Unplug: the pty pair closes and its path disappears (TCP: the port closes)."""
+        self.unplug()
 
     def reconnect(self) -> None:
         """Plug back in: a fresh pty behind the same path; the sensor powers up again."""
+        self.replug()
+
+    def _unplug(self) -> None:
+        with self._lock:
+            self.dev.disconnect()
+
+    def _replug(self) -> None:
         with self._lock:
             self._power_on()
             self._inbuf = b""
@@ -234,6 +240,7 @@ class HokuyoTwin(TwinControl):
     # -- serving ---------------------------------------------------------------------------
     def _run(self) -> None:
         while self._running:
+            self._serve_requests()
             with self._lock:
                 open_ = self.dev.is_open
                 stalled = time.monotonic() < self._stall_until
@@ -507,7 +514,7 @@ def main(args: argparse.Namespace) -> int:
             lambda: twin.start().path, twin.close,
             banner=f"hokuyo twin: {twin.model}, world {twin.world.name}, fault rate "
                    f"{twin.fault_rate:g}; SIGUSR1 unplugs 1 s, SIGUSR2 stalls 2 s",
-            faults=SignalFaults(twin.disconnect, twin.reconnect, twin.stall, unplug_s=1.0))
+            faults=SignalFaults(twin.unplug, twin.replug, twin.stall, unplug_s=1.0))
     finally:
         with contextlib.suppress(OSError):
             os.rmdir(tmp)

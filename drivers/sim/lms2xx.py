@@ -154,23 +154,17 @@ class Lms2xxTwin(TwinControl):
     def streaming(self) -> bool:
         return self.mode == 0x24
 
-    # -- fault injection (truncate, stall: TwinControl; executed by the twin thread) --------
-    def unplug(self) -> None:
+    # -- fault injection (truncate, stall, unplug, replug: TwinControl) ----------------------
+    def _unplug(self) -> None:
         """Close the pty and remove the link, as pulling the cable/adapter looks to the host."""
-        self._request("unplug")
+        self.pty.disconnect()
+        self.stats["unplugs"] += 1
 
-    def replug(self) -> None:
+    def _replug(self) -> None:
         """A fresh pty behind the same link; the device has been power-cycled (9600 baud)."""
-        self._request("replug")
-
-    def _do(self, what: str) -> None:
-        if what == "unplug":
-            self.pty.disconnect()
-            self.stats["unplugs"] += 1
-        elif what == "replug":
-            self.pty.reconnect()
-            self._power_on()
-            self.stats["replugs"] += 1
+        self.pty.reconnect()
+        self._power_on()
+        self.stats["replugs"] += 1
 
     # -- life cycle (start, __enter__/__exit__: TwinControl) ---------------------------------
     def stop(self) -> None:

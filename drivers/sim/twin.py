@@ -30,8 +30,8 @@ class TwinControl:
     """Life cycle and fault requests of a twin served by one thread.
 
     A subclass implements ``_run`` (the thread: loop while ``_running``, calling
-    :meth:`_serve_requests` each turn) and ``_do(what)`` (execute ``"unplug"``/``"replug"``),
-    and releases its device in ``stop()`` after ``super().stop()``.
+    :meth:`_serve_requests` each turn) and, to be unpluggable, ``_unplug``/``_replug``; it
+    releases its device in ``stop()`` after ``super().stop()``.
     """
 
     _thread_name = "twin"
@@ -55,6 +55,14 @@ class TwinControl:
         """Hang: no output and no answers for ``seconds`` (input received meanwhile is lost)."""
         with self._lock:
             self._stall_until = time.monotonic() + seconds
+
+    def unplug(self) -> None:
+        """Pull the plug (the twin's ``_unplug``), done by the twin thread between I/O steps."""
+        self._request("unplug")
+
+    def replug(self) -> None:
+        """Plug back in (the twin's ``_replug``): the device returns as after power-on."""
+        self._request("replug")
 
     def _take_truncate(self) -> bool:
         """Whether to cut the telegram being sent (consumes one pending truncation)."""
@@ -82,6 +90,15 @@ class TwinControl:
             done.set()
 
     def _do(self, what: str) -> None:
+        if what == "unplug":
+            self._unplug()
+        elif what == "replug":
+            self._replug()
+
+    def _unplug(self) -> None:
+        raise NotImplementedError
+
+    def _replug(self) -> None:
         raise NotImplementedError
 
     def _run(self) -> None:
