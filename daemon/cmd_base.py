@@ -29,6 +29,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 
 from cgamap.daemon.cli import UsageError
@@ -147,10 +148,21 @@ def run_odom(args: argparse.Namespace) -> int:
                 break
     except ModbusBaseError as exc:
         raise UsageError(f"odom: {exc}", 1) from None
+    except BrokenPipeError:
+        return _stdout_closed()
     finally:
         if drive is not None:
             base.set_wheel_speeds(0.0, 0.0)   # best effort: leave the base standing
         base.close()
+    return 0
+
+
+def _stdout_closed() -> int:
+    """The reader of our output went away (``| head``): stop quietly, exit 0.  stdout is
+    pointed at /dev/null so the interpreter's final flush does not fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
     return 0
 
 
@@ -273,14 +285,21 @@ def run_pantilt(args: argparse.Namespace) -> int:
     finally:
         head.close()
     hw = {"pan": st.hardware_error & 0xFF, "tilt": st.hardware_error >> 8}
+    try:
+        _print_state(args, st, hw, head.models, describe_hw_error)
+    except BrokenPipeError:
+        _stdout_closed()
+    return 0 if not st.hardware_error else 3
+
+
+def _print_state(args, st, hw: dict, models: dict, describe_hw_error) -> None:
     if args.json:
         print(json.dumps({"stamp_ns": st.stamp_ns, "pan": round(st.pan, 6),
                           "tilt": round(st.tilt, 6), "moving": st.moving,
                           "hardware_error": hw,
-                          "models": {str(k): v for k, v in head.models.items()},
+                          "models": {str(k): v for k, v in models.items()},
                           "errors": st.errors}))
     else:
         print(f"pan {st.pan:+.4f} rad  tilt {st.tilt:+.4f} rad  "
               f"moving {'yes' if st.moving else 'no'}  hardware errors: pan "
               f"{describe_hw_error(hw['pan'])}, tilt {describe_hw_error(hw['tilt'])}")
-    return 0 if not st.hardware_error else 3

@@ -124,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"stereo: {exc}", code=1) from None
     except ValueError as exc:
         raise UsageError(f"stereo: {exc}", code=1) from None
+    except BrokenPipeError:  # our stdout's reader went away
+        return _stdout_closed()
     except OSError as exc:  # e.g. the disk filled up while writing
         raise UsageError(f"stereo: --out {args.out}: cannot write ({exc.strerror or exc})",
                          code=1) from None
@@ -132,4 +134,13 @@ def run(args: argparse.Namespace) -> int:
     if writer.count == 0:
         print("cgamap: stereo: no frames", file=sys.stderr)
         return 1
+    return 0
+
+
+def _stdout_closed() -> int:
+    """The reader of our output went away (``| head``): stop quietly, exit 0.  stdout is
+    pointed at /dev/null so the interpreter's final flush does not fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
     return 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -471,3 +472,30 @@ def test_record_never_overwrites_and_survives_a_quiet_daemon(tmp_path, capsys):
         srv.close()
     assert code == 0, err
     assert "2 messages" in out
+
+
+# -- a closed stdout (`| head`) ---------------------------------------------------------------
+
+def _run_into_closed_pipe(argv: list, timeout: float = 30.0) -> subprocess.CompletedProcess:
+    r, w = os.pipe()
+    os.close(r)  # every write gets EPIPE
+    try:
+        return subprocess.run([sys.executable, "-m", "cgamap.daemon.cli", *map(str, argv)],
+                              stdout=w, stderr=subprocess.PIPE, text=True, timeout=timeout)
+    finally:
+        os.close(w)
+
+
+def test_closed_stdout_is_not_a_traceback(tmp_path):
+    proc = _run_into_closed_pipe(["planes", "--cloud", _small_cloud(tmp_path),
+                                  "--min-inliers", "100"])
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    twin = subprocess.Popen([sys.executable, "-m", "cgamap.daemon.cli", "sim-device",
+                             "modbus-base"], stdout=subprocess.PIPE, text=True)
+    try:
+        addr = twin.stdout.readline().strip()
+        proc = _run_into_closed_pipe(["odom", "--device", addr, "--json", "--drive", "1,1"])
+        assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    finally:
+        twin.terminate()
+        twin.wait(10)
