@@ -15,7 +15,6 @@ telegram left intact.
 from __future__ import annotations
 
 import argparse
-import collections
 import contextlib
 import logging
 import select
@@ -25,8 +24,8 @@ import time
 
 import numpy as np
 
-from .twin import SignalFaults, TwinControl, serve_until_signal
-from .world import NoiseModel, World, get_world
+from .twin import ScanTwin, SignalFaults, serve_until_signal
+from .world import NoiseModel, World
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +65,7 @@ class _Client:
         self.subscribed = False
 
 
-class ColaTwin(TwinControl):
+class ColaTwin(ScanTwin):
     """The simulated TiM5xx; ``start()`` runs it in a thread, ``stop()`` ends it."""
 
     _thread_name = "cola-twin"
@@ -74,23 +73,14 @@ class ColaTwin(TwinControl):
     def __init__(self, world: str | World = "room", *, host: str = "127.0.0.1", port: int = 0,
                  seed: int = 0, fault_rate: float = 0.0, time_scale: float = 1.0,
                  noise: NoiseModel | None = None, binary: bool = False) -> None:
-        super().__init__()
+        super().__init__(world, seed=seed, fault_rate=fault_rate, time_scale=time_scale,
+                         noise=noise)
         self.binary = binary   # CoLa B instead of CoLa A
-        self.world = get_world(world) if isinstance(world, str) else world
-        self.rng = np.random.default_rng(seed)
-        self.fault_rate = float(fault_rate)
-        self.time_scale = float(time_scale)
-        self.noise = noise if noise is not None else NoiseModel(sigma=0.01, dropout=0.002)
         self.host = host
         self.listener: socket.socket | None = None
         self._listen(port)
         self.port = self.listener.getsockname()[1]
         self.clients: list[_Client] = []
-        self.sent: collections.deque[tuple[bytes, bool]] = collections.deque(maxlen=200000)
-        # ground truth per generated scan: (device counter, sim time, x, y, theta)
-        self.truth: collections.deque[tuple[int, float, float, float, float]] = \
-            collections.deque(maxlen=200000)
-        self.stats = collections.Counter()
         self._power_on()
 
     @property

@@ -22,7 +22,6 @@ test can check that nothing corrupted was delivered.
 from __future__ import annotations
 
 import argparse
-import collections
 import logging
 import os
 import tempfile
@@ -31,8 +30,8 @@ import time
 import numpy as np
 
 from .pty_device import PtyClosed, PtyDevice
-from .twin import SignalFaults, TwinControl, serve_until_signal
-from .world import NoiseModel, World, get_world
+from .twin import ScanTwin, SignalFaults, serve_until_signal
+from .world import NoiseModel, World
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +103,7 @@ def default_config() -> bytearray:
     return cfg
 
 
-class Lms2xxTwin(TwinControl):
+class Lms2xxTwin(ScanTwin):
     """The simulated LMS on a pty; ``start()`` runs it in a thread, ``stop()`` ends it."""
 
     _thread_name = "lms2xx-twin"
@@ -113,12 +112,8 @@ class Lms2xxTwin(TwinControl):
                  seed: int = 0, fault_rate: float = 0.0, time_scale: float = 1.0,
                  noise: NoiseModel | None = None, interlace_half: bool = False,
                  type_string: str = "LMS291-S05") -> None:
-        super().__init__()
-        self.world = get_world(world) if isinstance(world, str) else world
-        self.rng = np.random.default_rng(seed)
-        self.fault_rate = float(fault_rate)
-        self.time_scale = float(time_scale)
-        self.noise = noise if noise is not None else NoiseModel(sigma=0.01, dropout=0.002)
+        super().__init__(world, seed=seed, fault_rate=fault_rate, time_scale=time_scale,
+                         noise=noise)
         self.interlace_half = interlace_half
         self.type_string = type_string
         self._own_dir = None
@@ -126,11 +121,6 @@ class Lms2xxTwin(TwinControl):
             self._own_dir = tempfile.mkdtemp(prefix="cgamap-lms2xx-")
             link = os.path.join(self._own_dir, "ttyLMS")
         self.pty = PtyDevice(link)
-        self.sent: collections.deque[tuple[bytes, bool]] = collections.deque(maxlen=200000)
-        # ground truth per generated scan: (device counter, sim time, x, y, theta)
-        self.truth: collections.deque[tuple[int, float, float, float, float]] = \
-            collections.deque(maxlen=200000)
-        self.stats = collections.Counter()
         self._power_on()
 
     @property

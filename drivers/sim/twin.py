@@ -25,6 +25,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Self
 
+import numpy as np
+
+from .world import NoiseModel, World, get_world
+
 
 class TwinControl:
     """Life cycle and fault requests of a twin served by one thread.
@@ -122,6 +126,26 @@ class TwinControl:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+class ScanTwin(TwinControl):
+    """A :class:`TwinControl` that ray-casts scans from a simulated world (the SICK twins):
+    the world, its noise, the random stream for noise and faults, and what was sent."""
+
+    def __init__(self, world: str | World, *, seed: int, fault_rate: float, time_scale: float,
+                 noise: NoiseModel | None) -> None:
+        super().__init__()
+        self.world = get_world(world) if isinstance(world, str) else world
+        self.rng = np.random.default_rng(seed)
+        self.fault_rate = float(fault_rate)
+        self.time_scale = float(time_scale)
+        self.noise = noise if noise is not None else NoiseModel(sigma=0.01, dropout=0.002)
+        # per streamed scan telegram: (its values as a key, whether it left intact)
+        self.sent: collections.deque[tuple[bytes, bool]] = collections.deque(maxlen=200000)
+        # ground truth per generated scan: (device counter, sim time, x, y, theta)
+        self.truth: collections.deque[tuple[int, float, float, float, float]] = \
+            collections.deque(maxlen=200000)
+        self.stats: collections.Counter[str] = collections.Counter()
 
 
 @dataclass
