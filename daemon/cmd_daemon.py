@@ -268,9 +268,12 @@ def run_record(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():  # never overwrite an earlier recording
         raise UsageError(f"record: {out}: exists; give a new file name")
     _output_file("record", "output", out)
+    if args.config:  # a bad config must not leave an empty recording behind
+        _load_config("record", args.config)
     stop = threading.Event()
     old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     deadline = time.monotonic() + args.duration if args.duration > 0 else math.inf
+    rec = None
     try:
         with open(out, "wb") as f:
             rec = McapRecorder(f)
@@ -281,6 +284,10 @@ def run_record(args: argparse.Namespace) -> int:
                     _record_daemon(args, rec, stop, deadline)
             finally:
                 rec.finish()
+    except UsageError:
+        if rec is None or rec.count == 0:  # nothing recorded: leave no empty file
+            out.unlink(missing_ok=True)
+        raise
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -323,14 +330,10 @@ def _record_daemon(args, rec, stop: threading.Event, deadline: float) -> None:
 
 
 def _record_devices(config_path: str, rec, stop: threading.Event, deadline: float) -> None:
-    from cgamap.daemon import config as config_mod
     from cgamap.daemon.devices import build_source
     from cgamap.daemon.supervisor import Supervisor
 
-    try:
-        cfg = config_mod.load(config_path)
-    except config_mod.ConfigError as exc:
-        raise UsageError(f"record: {config_path}: {exc}", config_mod.EX_CONFIG) from None
+    cfg = _load_config("record", config_path)
     sup = Supervisor(cfg["supervisor"]["backoff_initial"], cfg["supervisor"]["backoff_max"])
     for name, dev in cfg["devices"].items():
         if dev["enabled"] and dev["role"] != "camera":
@@ -343,6 +346,15 @@ def _record_devices(config_path: str, rec, stop: threading.Event, deadline: floa
                 rec.write(msg)
     finally:
         sup.stop()
+
+
+def _load_config(cmd: str, path) -> dict:
+    from cgamap.daemon import config as config_mod
+
+    try:
+        return config_mod.load(path)
+    except config_mod.ConfigError as exc:
+        raise UsageError(f"{cmd}: {path}: {exc}", config_mod.EX_CONFIG) from None
 
 
 def run_demo(args: argparse.Namespace) -> int:

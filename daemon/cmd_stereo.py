@@ -5,12 +5,14 @@ calibration YAML, frames.jsonl; layout in ``drivers/stereo_replay.py``)."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 from cgamap.daemon.cli import UsageError
 
 
@@ -111,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
         grabber.open()
     except DeviceNotFound as exc:
         raise UsageError(f"stereo: {exc}", code=1) from None
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        raise UsageError(f"stereo: {exc}", code=1) from None
+    except (ValueError, FileNotFoundError, RuntimeError, yaml.YAMLError) as exc:
+        raise UsageError(f"stereo: {_input_problem(args, exc)}", code=1) from None
     try:
         for frame in grabber.frames(count=args.count, timeout=args.timeout):
             rec = writer.write(frame)
@@ -122,8 +124,8 @@ def run(args: argparse.Namespace) -> int:
                   f"median depth {med:.2f} m -> {args.out}/{rec['left']}", flush=True)
     except TimeoutError as exc:
         raise UsageError(f"stereo: {exc}", code=1) from None
-    except ValueError as exc:
-        raise UsageError(f"stereo: {exc}", code=1) from None
+    except (ValueError, yaml.YAMLError) as exc:
+        raise UsageError(f"stereo: {_input_problem(args, exc)}", code=1) from None
     except BrokenPipeError:  # our stdout's reader went away
         return _stdout_closed()
     except OSError as exc:  # e.g. the disk filled up while writing
@@ -132,9 +134,24 @@ def run(args: argparse.Namespace) -> int:
     finally:
         grabber.close()
     if writer.count == 0:
-        print("cgamap: stereo: no frames", file=sys.stderr)
+        print(f"cgamap: stereo: no frames from --model {args.model} --device "
+              f"{args.device or '(default)'}", file=sys.stderr)
         return 1
     return 0
+
+
+def _input_problem(args: argparse.Namespace, exc: Exception) -> str:
+    """One line for a damaged input (a recording's frames.jsonl or calibration YAML)."""
+    where = f"--device {args.device}: " if args.device else ""
+    if isinstance(exc, json.JSONDecodeError):
+        return f"{where}frames.jsonl is damaged (line {exc.lineno}: {exc.msg})"
+    if isinstance(exc, UnicodeDecodeError):
+        return f"{where}a text file of the recording is not text"
+    if isinstance(exc, yaml.YAMLError):
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark else ""
+        return f"{where}calibration YAML syntax error{at}"
+    return str(exc)
 
 
 def _stdout_closed() -> int:

@@ -499,3 +499,34 @@ def test_closed_stdout_is_not_a_traceback(tmp_path):
     finally:
         twin.terminate()
         twin.wait(10)
+
+
+def test_record_failure_leaves_no_empty_recording(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(bytes(range(128, 256)))
+    out = tmp_path / "r.mcap"
+    code, _, err = run_cli(["record", out, "--config", bad, "--duration", "1"], capsys)
+    one_line(code, err, "bad.yaml", expect=78)
+    assert not out.exists()
+    code, _, err = run_cli(["record", out, "--socket", tmp_path / "no.sock", "--duration",
+                            "1"], capsys)
+    one_line(code, err, "no.sock", expect=69)
+    assert not out.exists()
+
+
+def test_stereo_replay_of_a_damaged_recording(tmp_path, capsys):
+    import cv2
+
+    rec = tmp_path / "rec"
+    for sub in ("left", "right"):
+        (rec / sub).mkdir(parents=True)
+        cv2.imwrite(str(rec / sub / "000000.png"), np.zeros((40, 60), np.uint8))
+    (rec / "calibration.yaml").write_text("fx: [\n")
+    code, _, err = run_cli(["stereo", "--model", "replay", "--device", rec, "--out",
+                            tmp_path / "o1"], capsys)
+    one_line(code, err, "--device", "calibration YAML", expect=1)
+    (rec / "calibration.yaml").write_text("fx: 50.0\ncx: 30.0\ncy: 20.0\nbaseline: 0.1\n")
+    (rec / "frames.jsonl").write_text("not json\n")
+    code, _, err = run_cli(["stereo", "--model", "replay", "--device", rec, "--out",
+                            tmp_path / "o2"], capsys)
+    one_line(code, err, "--device", "frames.jsonl", expect=1)
