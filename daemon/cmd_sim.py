@@ -46,6 +46,10 @@ def _check(args: argparse.Namespace) -> None:
                          f"got {args.fault_rate}")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"sim-device: --port: must be a TCP port 0..65535, got {args.port}")
+    if args.rtu and args.name != "modbus-base":
+        raise UsageError(f"sim-device: --rtu: only for modbus-base, not {args.name}")
+    if args.model is not None and args.name != "hokuyo":
+        raise UsageError(f"sim-device: --model: only for hokuyo, not {args.name}")
     if args.name in LASER_TWINS:
         from cgamap.drivers.sim.world import WORLDS
 

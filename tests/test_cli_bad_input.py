@@ -50,6 +50,8 @@ def run_proc(args: list[str], timeout: float = 20.0, **kw) -> subprocess.Complet
     (["sim-device", "hokuyo", "--fault-rate", "nan"], "--fault-rate"),
     (["sim-device", "cola", "--port", "99999"], "--port"),
     (["sim-device", "modbus-base", "--port", "-5"], "--port"),
+    (["sim-device", "lms2xx", "--rtu"], "--rtu"),
+    (["sim-device", "cola", "--model", "UTM-30LX"], "--model"),
 ])
 def test_sim_device_refuses_bad_flags(argv, needle, capsys):
     code, _, err = run_cli(argv, capsys)
