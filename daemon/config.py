@@ -267,6 +267,7 @@ def _check_devices(cfg: dict, base: Path) -> None:
         scheme = urlsplit(dev["url"]).scheme
         if dev["model"] == "carmen" and scheme != "file":
             raise ConfigError(f"{path}.url", "a carmen log needs a file:// URL")
+        _check_params(f"{path}.params", dev)
         if dev["hand_eye"]:
             he = Path(dev["hand_eye"])
             he = he if he.is_absolute() else base / he
@@ -280,6 +281,47 @@ def _check_devices(cfg: dict, base: Path) -> None:
     for role in ("laser", "odometry", "pantilt", "camera"):
         if roles.count(role) > 1:
             raise ConfigError("devices", f"more than one enabled {role} device")
+
+
+def _check_params(key: str, dev: dict) -> None:
+    """A device's free ``params`` against its driver: the drivers drop unknown keys or fail
+    only when the daemon opens the device (and the supervisor retries that forever), so a
+    typo (``wheel_radus``) or a bad value is reported here, before the daemon starts."""
+    from dataclasses import fields
+
+    params, model = dev["params"], dev["model"]
+    try:
+        if dev["role"] == "laser" and model in ("lms2xx", "hokuyo", "cola"):
+            from cgamap.daemon.devices import LASER_CLASSES, _import, driver_url
+
+            cls = _import(*LASER_CLASSES[model])
+            cls(driver_url(dev["url"]), dev["timeout"], reconnect=False, **params)
+        elif model == "modbus-base":
+            from cgamap.drivers.modbus_base import ModbusBaseConfig
+
+            known = {f.name for f in fields(ModbusBaseConfig)} | {"rate", "track", "timeout"}
+            _known_keys(key, params, known)
+            cfg = ModbusBaseConfig.from_dict(dev)
+            for name in ("wheel_radius", "track_width", "ticks_per_rev"):
+                value = getattr(cfg, name)
+                if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                    raise ConfigError(f"{key}.{name}", f"must be a number > 0, got {value!r}")
+        elif model == "dynamixel":
+            from cgamap.drivers.pantilt import PanTiltConfig
+
+            _known_keys(key, params, {f.name for f in fields(PanTiltConfig)} - {"url"})
+            PanTiltConfig.from_dict({**params, "url": dev["url"]})
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(key, f"rejected by the {model} driver: {exc}"[:200]) from None
+
+
+def _known_keys(key: str, params: dict, known: set[str]) -> None:
+    for k in params:
+        if k not in known:
+            raise ConfigError(f"{key}.{k}", f"unknown key (expected one of "
+                              f"{', '.join(sorted(known))})"[:300])
 
 
 def load_hand_eye(path: Path, key: str) -> list[list[float]]:

@@ -532,3 +532,25 @@ def test_stereo_replay_of_a_damaged_recording(tmp_path, capsys):
     code, _, err = run_cli(["stereo", "--model", "replay", "--device", rec, "--out",
                             tmp_path / "o2"], capsys)
     one_line(code, err, "--device", "frames.jsonl", expect=1)
+
+
+@pytest.mark.parametrize("device, needle", [
+    ({"role": "odometry", "model": "modbus-base", "url": "tcp://h:502",
+      "params": {"wheel_radus": 0.07}}, "params.wheel_radus"),
+    ({"role": "odometry", "model": "modbus-base", "url": "tcp://h:502",
+      "params": {"wheel_radius": -1}}, "params.wheel_radius"),
+    ({"role": "laser", "model": "lms2xx", "url": "serial:///dev/ttyS0",
+      "params": {"resolution": 0.3}}, "params"),
+    ({"role": "laser", "model": "hokuyo", "url": "serial:///dev/ttyS0",
+      "params": {"nonsense": 1}}, "nonsense"),
+    ({"role": "pantilt", "model": "dynamixel", "url": "serial:///dev/ttyS0",
+      "params": {"protocl": 1.0}}, "params.protocl"),
+])
+def test_config_device_params_checked_against_the_driver(device, needle):
+    """A typo or bad value in params was dropped silently or failed only when the daemon
+    opened the device (retried forever)."""
+    from cgamap.daemon import config
+
+    with pytest.raises(config.ConfigError) as info:
+        config.validate({"devices": {"d": device}})
+    assert needle in str(info.value) and "\n" not in str(info.value)
