@@ -117,6 +117,30 @@ def check_paths(state_dir: Path, socket_path: Path) -> None:
                            "refusing to replace it", EX_CANTCREAT)
 
 
+def lock_state_dir(state_dir: Path) -> int:
+    """Hold an exclusive lock on the state directory for the daemon's life: a second cgamapd
+    on the same directory would overwrite the first one's checkpoints (and remove its
+    in-flight temp files).  Returns the lock file's descriptor (closed at exit)."""
+    import fcntl
+
+    lock = state_dir / "cgamapd.lock"
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise StartupError(f"state directory {state_dir}: cannot create {lock.name} "
+                           f"({exc.strerror or exc})", EX_CANTCREAT) from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        other = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise StartupError(f"state directory {state_dir}: in use by another cgamapd "
+                           f"(pid {other})", EX_CANTCREAT) from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     path = args.check_config or args.config or default_config_path()
@@ -136,8 +160,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.replay:
             check_replay(args.replay)
         state, sock = config_mod.resolve_paths(cfg)
-        check_paths(Path(args.state_dir) if args.state_dir else state,
-                    Path(args.socket) if args.socket else sock)
+        state = Path(args.state_dir) if args.state_dir else state
+        check_paths(state, Path(args.socket) if args.socket else sock)
+        lock_fd = lock_state_dir(state)
     except StartupError as exc:
         print(f"cgamapd: {exc}", file=sys.stderr)
         return exc.code
@@ -149,7 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     daemon = Daemon(cfg, config_path=path, replay=args.replay, replay_rate=args.replay_rate,
                     state_dir=args.state_dir, socket_path=args.socket,
                     exit_after_replay=args.exit_after_replay)
-    return daemon.run()
+    try:
+        return daemon.run()
+    finally:
+        os.close(lock_fd)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -554,3 +555,24 @@ def test_config_device_params_checked_against_the_driver(device, needle):
     with pytest.raises(config.ConfigError) as info:
         config.validate({"devices": {"d": device}})
     assert needle in str(info.value) and "\n" not in str(info.value)
+
+
+def test_second_cgamapd_on_the_same_state_dir_is_refused(tmp_path, minimal_config):
+    first = subprocess.Popen([sys.executable, "-m", "cgamap.daemon.main", "-c",
+                              str(minimal_config), "--socket", str(tmp_path / "a.sock")],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        lock = tmp_path / "state" / "cgamapd.lock"
+        for _ in range(200):  # until the first one holds the lock (its pid is written)
+            if lock.is_file() and lock.read_text().strip():
+                break
+            if first.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert first.poll() is None, first.stderr.read()
+        proc = cgamapd(["-c", minimal_config, "--socket", tmp_path / "b.sock"])
+        assert proc.returncode == 73 and "in use by another cgamapd" in proc.stderr
+        assert proc.stderr.count("\n") == 1
+    finally:
+        first.terminate()
+        first.wait(10)
