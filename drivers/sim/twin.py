@@ -5,10 +5,12 @@
 holds the lock, the truncate counter and stall deadline that the fault methods set and the
 thread reads, and a queue of requests (unplug, replug) that the thread executes between two
 I/O steps, so that a test thread never closes a device the twin thread is using.
+:class:`ScanTwin` adds the state of the twins that ray-cast scans from a simulated world.
 
 :func:`serve_until_signal` is the body of a twin module's ``main(args)``: start, print where
 to connect as the first stdout line, serve until SIGINT/SIGTERM, stop; optionally SIGUSR1
-unplugs for a while and SIGUSR2 stalls.
+unplugs for a while and SIGUSR2 stalls.  :func:`close_fds` and :func:`flip_bytes` (line
+noise) serve the pty twins of the Modbus base and the Dynamixel bus.
 """
 
 from __future__ import annotations
