@@ -15,6 +15,9 @@ import numpy as np
 import yaml
 from cgamap.daemon.cli import UsageError
 
+MAX_DISPARITIES = 1024
+MAX_BLOCK = 51
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stereo", help="grab stereo frames and write images, disparity, points")
@@ -85,6 +88,13 @@ def _check_args(args: argparse.Namespace) -> None:
         raise UsageError("stereo: --count: must be at least 1")
     if args.stride < 1:
         raise UsageError("stereo: --stride: must be at least 1")
+    # OpenCV itself only fails (or allocates for minutes) on values beyond the image
+    if not 16 <= args.num_disparities <= MAX_DISPARITIES:
+        raise UsageError(f"stereo: --num-disparities: must be 16..{MAX_DISPARITIES} (a "
+                         f"multiple of 16, below the image width), got {args.num_disparities}")
+    if not 1 <= args.block_size <= MAX_BLOCK:
+        raise UsageError(f"stereo: --block-size: must be odd, 1..{MAX_BLOCK}, got "
+                         f"{args.block_size}")
     if not args.max_depth > 0:  # inf is fine: keep every point
         raise UsageError(f"stereo: --max-depth: must be positive, got {args.max_depth}")
     if not (args.timeout > 0 and math.isfinite(args.timeout)):
@@ -99,6 +109,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import cv2
     from cgamap.drivers.stereo_depthai import DeviceNotFound
     from cgamap.drivers.stereo_replay import SequenceWriter
 
@@ -126,6 +137,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"stereo: {exc}", code=1) from None
     except (ValueError, yaml.YAMLError) as exc:
         raise UsageError(f"stereo: {_input_problem(args, exc)}", code=1) from None
+    except cv2.error as exc:  # e.g. more disparities than the image is wide
+        raise UsageError(f"stereo: OpenCV refused the frame: {exc.err or exc} (check "
+                         "--num-disparities and --block-size against the image size)",
+                         code=1) from None
     except BrokenPipeError:  # our stdout's reader went away
         return _stdout_closed()
     except OSError as exc:  # e.g. the disk filled up while writing

@@ -218,6 +218,8 @@ def test_stereo_never_writes_into_an_existing_recording(tmp_path, capsys):
     (["--max-depth", "-1"], "--max-depth"),
     (["--timeout", "0"], "--timeout"),
     (["--calib", "no-such-calib.yaml"], "--calib"),
+    (["--num-disparities", "1600000"], "--num-disparities"),  # was minutes of allocation
+    (["--block-size", "999"], "--block-size"),  # was a frame with 0 points
 ])
 def test_stereo_refuses_bad_flags(extra, needle, tmp_path, capsys):
     out = tmp_path / "out"
@@ -576,3 +578,9 @@ def test_second_cgamapd_on_the_same_state_dir_is_refused(tmp_path, minimal_confi
     finally:
         first.terminate()
         first.wait(10)
+
+
+def test_stereo_opencv_refusal_is_one_line(tmp_path, capsys):
+    code, _, err = run_cli(["stereo", "--model", "synthetic", "--out", tmp_path / "o",
+                            "--num-disparities", "1024"], capsys)  # wider than the image
+    one_line(code, err, "--num-disparities", expect=1)
