@@ -143,15 +143,18 @@ def _clear_errors(reader):
     return wrapped
 
 
+def _read_raw(path: str | Path) -> tuple[str, bytes]:
+    """The file's name (for messages) and bytes; an unreadable file is a CloudFormatError."""
+    try:
+        return str(path), Path(path).read_bytes()
+    except OSError as exc:
+        raise CloudFormatError(f"{path}: cannot read ({exc.strerror})") from None
+
+
 @_clear_errors
 def read_pcd(path: str | Path, keep_organised: bool = True) -> np.ndarray:
     """xyz of a PCD file: (H, W, 3) for organised clouds (NaN kept), else (n, 3) float64."""
-    path = Path(path)
-    name = str(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise CloudFormatError(f"{name}: cannot read ({exc.strerror})") from None
+    name, raw = _read_raw(path)
     header, body = _parse_pcd_header(raw, name)
     _, dtype, width, height = _pcd_fields(header, name)
     n = width * height
@@ -210,12 +213,7 @@ def read_pcd(path: str | Path, keep_organised: bool = True) -> np.ndarray:
 @_clear_errors
 def read_ply(path: str | Path) -> np.ndarray:
     """xyz (n, 3) of the vertex element of a PLY file (ascii or binary_little_endian)."""
-    path = Path(path)
-    name = str(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise CloudFormatError(f"{name}: cannot read ({exc.strerror})") from None
+    name, raw = _read_raw(path)
     if not raw.startswith(b"ply"):
         raise CloudFormatError(f"{name}: not a PLY file (no 'ply' magic)")
     end = raw.find(b"end_header")
