@@ -126,7 +126,8 @@ def test_pantilt_refuses_bad_flags(argv, needle, tmp_path, capsys):
     one_line(code, err, needle, expect=2)
 
 
-@pytest.mark.parametrize("url", ["foo://x", "/dev/ttyNOPE?baudrate=abc"])
+@pytest.mark.parametrize("url", ["foo://x", "/dev/ttyNOPE?baudrate=abc", "socket://",
+                                 "tcp://host:port"])
 def test_pantilt_malformed_url_is_one_line(url, capsys):
     code, _, err = run_cli(["pantilt", "--device", url, "status"], capsys)
     one_line(code, err, url, expect=2)
