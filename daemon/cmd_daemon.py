@@ -23,6 +23,7 @@ from cgamap.daemon.cli import UsageError
 from cgamap.daemon.export import FORMATS
 
 DEFAULT_SOCKET = "/run/cgamap/cgamapd.sock"
+REPLY_TIMEOUT = 10.0  # s: a daemon that does not answer a query within this is stuck
 
 
 def socket_path(args: argparse.Namespace) -> str:
@@ -32,10 +33,20 @@ def socket_path(args: argparse.Namespace) -> str:
 def _ask(args: argparse.Namespace, cmd: str, **kw) -> dict:
     from cgamap.daemon.server import DaemonUnavailable, request
 
+    where = socket_path(args)
     try:
-        reply = request(socket_path(args), cmd, **kw)
+        reply = request(where, cmd, timeout=REPLY_TIMEOUT, **kw)
     except DaemonUnavailable as exc:
         raise UsageError(f"{cmd}: {exc}", code=69) from None  # EX_UNAVAILABLE
+    except TimeoutError:
+        raise UsageError(f"{cmd}: {where}: no reply within {REPLY_TIMEOUT:g} s (daemon "
+                         "stuck, or not cgamapd)", code=69) from None
+    except OSError as exc:
+        raise UsageError(f"{cmd}: {where}: {exc.strerror or exc}", code=69) from None
+    except ValueError:  # JSONDecodeError, UnicodeDecodeError
+        raise UsageError(f"{cmd}: {where}: the reply is not cgamapd's JSON", code=69) from None
+    if not isinstance(reply, dict):
+        raise UsageError(f"{cmd}: {where}: the reply is not cgamapd's JSON", code=69)
     if reply.get("class") == "error":
         error = str(reply["error"])
         error = error[len(cmd) + 2:] if error.startswith(f"{cmd}: ") else error
@@ -148,6 +159,14 @@ def run_status(args: argparse.Namespace) -> int:
     st = _ask(args, "status")
     if args.json:
         return _print(st)
+    try:
+        return _print_status(st)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsageError(f"status: {socket_path(args)}: unexpected reply (missing or bad "
+                         f"{exc}); see --json", code=1) from None
+
+
+def _print_status(st: dict) -> int:
     x, y, th = st["pose"]
     q = st.get("quality")
     print(f"pose        {x:.3f} {y:.3f} {math.degrees(th):.1f} deg   match quality "
@@ -177,10 +196,12 @@ def run_watch(args: argparse.Namespace) -> int:
     if args.count < 0:
         raise UsageError(f"watch: --count: must be >= 0, got {args.count}")
     _positive("watch", "--interval", args.interval)
+    # the daemon sends a status every --interval: silence far beyond that is a stuck peer
+    quiet = max(REPLY_TIMEOUT, 3 * args.interval)
+    where = socket_path(args)
     n = 0
     try:
-        for obj in stream(socket_path(args), timeout=None, raw=args.raw,
-                          interval=args.interval):
+        for obj in stream(where, timeout=quiet, raw=args.raw, interval=args.interval):
             print(json.dumps(obj, separators=(",", ":")), flush=True)
             n += 1
             if args.count and n >= args.count:
@@ -189,6 +210,11 @@ def run_watch(args: argparse.Namespace) -> int:
         raise UsageError(f"watch: {exc}", code=69) from None
     except BrokenPipeError:
         pass
+    except TimeoutError:
+        raise UsageError(f"watch: {where}: nothing from the daemon for {quiet:g} s", 69) \
+            from None
+    except ValueError:
+        raise UsageError(f"watch: {where}: a line that is not cgamapd's JSON", 69) from None
     return 0
 
 

@@ -585,3 +585,51 @@ def test_stereo_opencv_refusal_is_one_line(tmp_path, capsys):
     code, _, err = run_cli(["stereo", "--model", "synthetic", "--out", tmp_path / "o",
                             "--num-disparities", "1024"], capsys)  # wider than the image
     one_line(code, err, "--num-disparities", expect=1)
+
+
+def _fake_daemon(path: Path, reply: bytes | None):
+    """A Unix socket that answers every connection with ``reply`` (None: never answers)."""
+    import threading
+
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(str(path))
+    srv.listen(8)
+    conns: list = []
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                return
+            conns.append(conn)
+            if reply is not None:
+                conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    return srv, conns
+
+
+@pytest.mark.parametrize("reply, needle", [
+    (None, "no reply"),
+    (b"\xff\xfe not json\n", "not cgamapd's JSON"),
+    (b"[1, 2]\n", "not cgamapd's JSON"),
+    (b'{"class": "status"}\n', "unexpected reply"),
+])
+def test_status_against_a_stuck_or_foreign_socket(reply, needle, tmp_path, capsys,
+                                                  monkeypatch):
+    from cgamap.daemon import cmd_daemon
+
+    monkeypatch.setattr(cmd_daemon, "REPLY_TIMEOUT", 0.5)
+    srv, conns = _fake_daemon(tmp_path / "d.sock", reply)
+    try:
+        code, _, err = run_cli(["status", "--socket", tmp_path / "d.sock"], capsys)
+        one_line(code, err, needle, "d.sock")
+        if reply is None:
+            code, _, err = run_cli(["watch", "--socket", tmp_path / "d.sock", "--interval",
+                                    "0.1"], capsys)
+            one_line(code, err, "nothing from the daemon", expect=69)
+    finally:
+        srv.close()
+        for c in conns:
+            c.close()
