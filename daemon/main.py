@@ -48,6 +48,7 @@ def default_config_path() -> str:
 
 
 EX_USAGE, EX_NOINPUT, EX_CANTCREAT = 64, 66, 73  # sysexits.h
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 class StartupError(Exception):
@@ -75,6 +76,12 @@ def check_replay(path: str) -> None:
             head = f.read(2)
         if not head:
             raise StartupError(f"--replay {path}: empty file", EX_NOINPUT)
+        if head == b"\x89M":  # MCAP: a complete recording ends with the magic again
+            with open(p, "rb") as f:
+                f.seek(max(0, p.stat().st_size - 8))
+                if f.read(8) != MCAP_MAGIC:
+                    raise StartupError(f"--replay {path}: MCAP recording is incomplete (cut "
+                                       "short: no end magic)", EX_NOINPUT)
         if head == b"\x1f\x8b":  # gzipped CARMEN log: the whole stream must be intact
             with gzip.open(p, "rb") as f:
                 while f.read(1 << 20):

@@ -633,3 +633,19 @@ def test_status_against_a_stuck_or_foreign_socket(reply, needle, tmp_path, capsy
         srv.close()
         for c in conns:
             c.close()
+
+
+def test_cgamapd_refuses_a_cut_mcap_recording(tmp_path, minimal_config):
+    from cgamap.daemon.recording import McapRecorder
+
+    full = tmp_path / "full.mcap"
+    with open(full, "wb") as f:
+        rec = McapRecorder(f)
+        for k in range(20):
+            rec.write_json("/odom", "foxglove.PoseInFrame", {"k": k}, k + 1)
+        rec.finish()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(full.read_bytes()[:-100])
+    proc = cgamapd(["-c", minimal_config, "--replay", cut, "--exit-after-replay"])
+    assert proc.returncode == 66 and "incomplete" in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1
