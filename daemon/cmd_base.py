@@ -29,6 +29,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
 import time
 
@@ -127,6 +128,9 @@ def run_odom(args: argparse.Namespace) -> int:
         raise UsageError(f"odom: {exc}{_missing_port(args.device)}", 1) from None
     odo = OdometryIntegrator(geom)
     printed = 0
+    # SIGTERM/SIGHUP (timeout, systemd, a closed terminal) must reach the finally below:
+    # with --drive, the default action would leave the wheels turning
+    old = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         for k, msg in enumerate(base.poll(max_silence_s=args.timeout)):
             odo.update(msg.left, msg.right, msg.stamp_ns)
@@ -151,10 +155,18 @@ def run_odom(args: argparse.Namespace) -> int:
     except BrokenPipeError:
         return _stdout_closed()
     finally:
-        if drive is not None:
-            base.set_wheel_speeds(0.0, 0.0)   # best effort: leave the base standing
-        base.close()
+        try:
+            if drive is not None:
+                base.set_wheel_speeds(0.0, 0.0)   # best effort: leave the base standing
+            base.close()
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
     return 0
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def _stdout_closed() -> int:

@@ -649,3 +649,31 @@ def test_cgamapd_refuses_a_cut_mcap_recording(tmp_path, minimal_config):
     proc = cgamapd(["-c", minimal_config, "--replay", cut, "--exit-after-replay"])
     assert proc.returncode == 66 and "incomplete" in proc.stderr, proc.stderr
     assert proc.stderr.count("\n") == 1
+
+
+def test_odom_drive_stops_the_base_on_sigterm(capsys):
+    import signal
+
+    twin = subprocess.Popen([sys.executable, "-m", "cgamap.daemon.cli", "sim-device",
+                             "modbus-base"], stdout=subprocess.PIPE, text=True)
+    try:
+        addr = twin.stdout.readline().strip()
+        odom = subprocess.Popen([sys.executable, "-m", "cgamap.daemon.cli", "odom", "--device",
+                                 addr, "--drive", "2,2", "--json"], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            for _ in range(30):  # until it is surely driving
+                if json.loads(odom.stdout.readline())["v"] > 0:
+                    break
+            odom.send_signal(signal.SIGTERM)
+            _, err = odom.communicate(timeout=10)
+        finally:
+            odom.kill()
+        assert "Traceback" not in err, err
+        time.sleep(0.2)
+        code, out, err = run_cli(["odom", "--device", addr, "--count", "5", "--json"], capsys)
+        assert code == 0, err
+        assert json.loads(out.splitlines()[-1])["v"] == 0.0  # the wheels were stopped
+    finally:
+        twin.terminate()
+        twin.wait(10)
