@@ -62,10 +62,12 @@ def _grabber(args: argparse.Namespace):
         raise UsageError(f"stereo: {exc}") from None
 
 
-def _check_out(args: argparse.Namespace) -> None:
+def _check_out(args: argparse.Namespace) -> bool:
     """The output folder must be creatable and must not already hold a recording: the
-    writer appends to frames.jsonl and numbers frames from 0, so it would overwrite one."""
+    writer appends to frames.jsonl and numbers frames from 0, so it would overwrite one.
+    Returns True when the folder is new (created here)."""
     out = Path(args.out)
+    created = not out.exists()
     if args.model == "replay" and args.device and Path(args.device).resolve() == out.resolve():
         raise UsageError(f"stereo: --out {args.out}: is the recording being replayed; "
                          "choose another folder")
@@ -81,6 +83,7 @@ def _check_out(args: argparse.Namespace) -> None:
                          ) from None
     if not os.access(out, os.W_OK):
         raise UsageError(f"stereo: --out {args.out}: folder is not writable")
+    return created
 
 
 def _check_args(args: argparse.Namespace) -> None:
@@ -115,11 +118,22 @@ def run(args: argparse.Namespace) -> int:
 
     _check_args(args)
     grabber = _grabber(args)
-    _check_out(args)
+    created = _check_out(args)
     mount = getattr(grabber, "mount", None) if args.global_frame else None
     writer = SequenceWriter(args.out, save_points=not args.no_points, stride=args.stride,
                             max_depth=args.max_depth, global_frame=args.global_frame,
                             mount=mount)
+    try:
+        return _grab(args, grabber, writer, cv2, DeviceNotFound)
+    finally:
+        if created and writer.count == 0:  # leave no empty folder behind a failure
+            try:
+                Path(args.out).rmdir()
+            except OSError:
+                pass
+
+
+def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int:
     try:
         grabber.open()
     except DeviceNotFound as exc:

@@ -536,6 +536,7 @@ def test_stereo_replay_of_a_damaged_recording(tmp_path, capsys):
     code, _, err = run_cli(["stereo", "--model", "replay", "--device", rec, "--out",
                             tmp_path / "o2"], capsys)
     one_line(code, err, "--device", "frames.jsonl", expect=1)
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()  # no debris
 
 
 @pytest.mark.parametrize("device, needle", [
