@@ -96,11 +96,13 @@ def check_url(url: str) -> str | None:
             port = parts.port
         except ValueError:
             return f"bad port in {url!r}"
-        if not parts.hostname or port is None:
+        if not parts.hostname or not port:
             return f"needs host and port, e.g. tcp://127.0.0.1:502, got {url!r}"
     for key, value in parse_qsl(parts.query):
         if key in ("baudrate", "unit", "id") and not value.isdigit():
             return f"query {key}={value!r} must be an integer"
+        if key == "baudrate" and int(value) <= 0:
+            return f"query baudrate={value!r} must be positive"
     return None
 
 

@@ -348,6 +348,10 @@ def test_config_file_problems_exit_78(tmp_path):
         "float_text.yaml": (b"checkpoint:\n  interval: 1e3\n", "1.0e-3"),
         "bare_path.yaml": (b"devices:\n  l:\n    role: laser\n    model: hokuyo\n"
                            b"    url: /dev/ttyACM0\n", "serial:///dev/ttyACM0"),
+        "port0.yaml": (b"devices:\n  l:\n    role: laser\n    model: cola\n"
+                       b"    url: tcp://10.0.0.2:0\n", "devices.l.url"),
+        "baud0.yaml": (b"devices:\n  l:\n    role: laser\n    model: lms2xx\n"
+                       b"    url: serial:///dev/ttyS0?baudrate=0\n", "baudrate"),
         "he_dir.yaml": (b"devices:\n  h:\n    role: pantilt\n    model: dynamixel\n"
                         b"    url: tcp://h:1\n    hand_eye: .\n", "is a directory"),
     }
