@@ -464,3 +464,31 @@ def test_sim_device_cli_serves_until_sigterm():
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=5)
+
+
+def test_non_ascii_command_is_answered_and_twin_keeps_serving(tmp_path):
+    """QA: a Dynamixel packet (bytes >= 0x80) sent to the twin killed its serving thread."""
+    with HokuyoTwin("URG-04LX", link=str(tmp_path / "tty"), speed=4.0) as tw:
+        with open_transport(tw.path, 1.0) as t:
+            t.write(b"\xff\xff\xfd\x00\x01\x03\x00\x01\x19\x4e\n")
+            assert t.read_until(b"\n\n", timeout=1.0) == b"???\x00\x01\x03\x00\x01\x19N\n0Ee\n\n"
+            t.write(b"BM\n")
+            assert t.read_until(b"\n\n", timeout=1.0) == b"BM\n00P\n\n"
+        with _driver(tw) as d:
+            assert len(d.read_scan(2.0).ranges) == 682
+        assert tw._thread.is_alive()
+
+
+def test_a_command_that_raises_is_counted_not_fatal(tmp_path, monkeypatch):
+    with HokuyoTwin("URG-04LX", link=str(tmp_path / "tty"), speed=4.0) as tw:
+        real = tw._command
+
+        def flaky(line: str) -> None:
+            if line == "XX":
+                raise RuntimeError("boom")
+            real(line)
+        monkeypatch.setattr(tw, "_command", flaky)
+        with open_transport(tw.path, 1.0) as t:
+            t.write(b"XX\nBM\n")
+            assert t.read_until(b"\n\n", timeout=1.0) == b"BM\n00P\n\n"
+        assert tw.command_errors == 1

@@ -97,7 +97,8 @@ def scan_reply(echo: str, status: str, timestamp: int, values: np.ndarray, enc: 
         payload = encode_values(values, _WIDTH[enc])
     tsc = encode_values(np.array([timestamp]), 4)
     st = status.encode("ascii")
-    return (echo.encode("ascii") + b"\n" + st + sum_char(st) + b"\n" + tsc + sum_char(tsc)
+    head = echo.encode("ascii", "replace")     # a non-ASCII command echoes as '?'
+    return (head + b"\n" + st + sum_char(st) + b"\n" + tsc + sum_char(tsc)
             + b"\n" + data_lines(payload) + b"\n")
 
 
@@ -156,6 +157,7 @@ class HokuyoTwin(TwinControl):
         self.bm_status = status               # answer to BM (e.g. "01" = laser malfunction)
         self.sent: deque[SentScan] = deque(maxlen=100000)
         self.commands: list[str] = []          # every command line received
+        self.command_errors = 0                # commands whose handling raised (twin kept serving)
         # a pty (serial and USB models), or loopback TCP (Ethernet models) with tcp_port
         self.dev: PtyDevice | TcpDevice = PtyDevice(link) if tcp_port is None else \
             TcpDevice(port=tcp_port)
@@ -271,8 +273,14 @@ class HokuyoTwin(TwinControl):
         if len(self._inbuf) > 256:            # no terminator in sight: drop it
             self._inbuf = b""
         for raw in lines:
-            if raw:
+            if not raw:
+                continue
+            try:
                 self._command(raw.decode("ascii", "replace"))
+            except (PtyClosed, OSError):
+                raise                        # the link itself: _run waits for reconnect()
+            except Exception:                # one bad command must not end the serving thread
+                self.command_errors += 1
 
     def _send(self, data: bytes, scan: SentScan | None = None, cut: bool = False) -> None:
         """Write with byte errors (and an optional cut) applied; record scans."""
@@ -298,7 +306,8 @@ class HokuyoTwin(TwinControl):
 
     def _reply(self, echo: str, status: str, body: bytes = b"") -> None:
         st = status.encode("ascii")
-        self._send(echo.encode("ascii") + b"\n" + st + sum_char(st) + b"\n" + body + b"\n")
+        head = echo.encode("ascii", "replace")     # a non-ASCII command echoes as '?'
+        self._send(head + b"\n" + st + sum_char(st) + b"\n" + body + b"\n")
 
     def _command(self, line: str) -> None:
         self.commands.append(line)
