@@ -15,6 +15,7 @@ import logging
 import os
 import socket
 import socketserver
+import stat
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -95,15 +96,20 @@ class QueryServer:
 
     def _prepare_path(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists() or self.path.is_symlink():
-            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-                probe.settimeout(0.5)
-                try:
-                    probe.connect(str(self.path))
-                except OSError:
-                    self.path.unlink()  # stale socket of a previous run
-                else:
-                    raise RuntimeError(f"{self.path}: another daemon is answering there")
+        try:
+            st = os.lstat(self.path)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISSOCK(st.st_mode):   # a file, directory or symlink: not ours to delete
+            raise RuntimeError(f"{self.path}: exists and is not a socket; refusing to replace it")
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            probe.settimeout(0.5)
+            try:
+                probe.connect(str(self.path))
+            except OSError:
+                self.path.unlink()  # stale socket of a previous run
+            else:
+                raise RuntimeError(f"{self.path}: another daemon is answering there")
 
     def start(self) -> None:
         self._prepare_path()

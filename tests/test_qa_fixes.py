@@ -1,0 +1,62 @@
+"""Regression tests for QA findings that have no better home."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+
+import pytest
+from cgamap.daemon.server import QueryServer
+from daemon_stack import short_dir
+
+
+@pytest.fixture
+def sockdir():
+    d = short_dir()
+    yield str(d)
+    shutil.rmtree(d, ignore_errors=True)
+
+
+class _App:
+    def command(self, req):
+        return {"ok": True}
+
+    def watch(self, req, send, stop):
+        pass
+
+
+@pytest.mark.parametrize("kind", ["file", "dir", "symlink"])
+def test_socket_path_holding_another_file_is_refused_and_kept(kind, sockdir):
+    d = sockdir
+    path = os.path.join(d, "q.sock")
+    if kind == "file":
+        with open(path, "w") as f:
+            f.write("precious")
+    elif kind == "dir":
+        os.mkdir(path)
+    else:
+        os.symlink(os.path.join(d, "elsewhere"), path)
+    srv = QueryServer(_App(), path)
+    with pytest.raises(RuntimeError, match="not a socket"):
+        srv.start()
+    assert os.path.lexists(path)
+    if kind == "file":
+        with open(path) as f:
+            assert f.read() == "precious"
+
+
+def test_stale_socket_is_replaced(sockdir):
+    d = sockdir
+    path = os.path.join(d, "q.sock")
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(path)
+    s.close()                               # a socket file nobody listens on
+    srv = QueryServer(_App(), path)
+    srv.start()
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
+            c.settimeout(2.0)
+            c.connect(path)
+    finally:
+        srv.stop()
