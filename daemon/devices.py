@@ -8,10 +8,13 @@ is switched off: restarting is the supervisor's job, with backoff and counted re
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlsplit
+
+log = logging.getLogger(__name__)
 
 LASER_CLASSES = {
     "lms2xx": ("cgamap.drivers.lms2xx", "Lms2xxDriver"),
@@ -200,7 +203,9 @@ class ReplaySource:
     """Messages from a recording (MCAP written by ``cgamap record``) or a CARMEN log.
 
     ``rate`` 0 replays as fast as the consumer takes them (the supervisor's lossless queue
-    paces it); otherwise the recorded time gaps are replayed, scaled by 1/rate.
+    paces it); otherwise the recorded time gaps are replayed, scaled by 1/rate.  A read error
+    partway through ends the replay (logged, counted in ``errors``): restarting would replay
+    the start again and feed the map duplicate scans.
     """
 
     def __init__(self, path: str, roles: tuple[str, ...] = ("laser", "odometry"),
@@ -208,6 +213,7 @@ class ReplaySource:
         self.path, self.roles, self.rate = path, roles, rate
         self.it = None
         self.count = 0
+        self.errors = {"replay_errors": 0}
         self._t0: tuple[int, float] | None = None
 
     def open(self) -> None:
@@ -219,10 +225,19 @@ class ReplaySource:
         from cgamap.daemon.supervisor import END
         from cgamap.drivers.messages import LaserScan, OdometryPose, WheelTicks
 
-        wanted = {"laser": LaserScan, "odometry": (OdometryPose, WheelTicks)}
-        types = tuple(t for r in self.roles for t in (wanted.get(r) or ())
-                      for t in (t if isinstance(t, tuple) else (t,)))
-        for msg in self.it:
+        wanted = {"laser": (LaserScan,), "odometry": (OdometryPose, WheelTicks)}
+        types = tuple(t for r in self.roles for t in wanted.get(r, ()))
+        while True:
+            try:
+                msg = next(self.it)
+            except StopIteration:
+                return END
+            except Exception as exc:  # noqa: BLE001 - whatever the reader raises, stop here
+                self.errors["replay_errors"] += 1
+                log.error("replay %s: read error after %d messages (%s: %s); replay ends here",
+                          self.path, self.count, type(exc).__name__, exc)
+                self.it = iter(())
+                return END
             if types and not isinstance(msg, types):
                 continue
             self.count += 1
@@ -234,7 +249,6 @@ class ReplaySource:
                 if due > now:
                     time.sleep(due - now)
             return msg
-        return END
 
     def close(self) -> None:
         self.it = None

@@ -60,3 +60,30 @@ def test_stale_socket_is_replaced(sockdir):
             c.connect(path)
     finally:
         srv.stop()
+
+
+def test_replay_read_error_ends_the_replay_instead_of_restarting(monkeypatch):
+    """QA: an error partway through a replay restarted it from the start forever."""
+    import threading
+
+    import numpy as np
+    from cgamap.daemon import recording
+    from cgamap.daemon.devices import ReplaySource
+    from cgamap.daemon.supervisor import BoundedQueue, DeviceWorker
+    from cgamap.drivers.messages import LaserScan
+
+    def broken(path):
+        for i in range(3):
+            yield LaserScan(seq=i, stamp_ns=i * 10**8, angle_min=0.0, angle_increment=0.01,
+                            ranges=np.ones(5))
+        raise ValueError("chunk 4: bad CRC")
+    monkeypatch.setattr(recording, "read_messages", broken)
+    q = BoundedQueue(threading.Condition(), 100, lossy=False)
+    w = DeviceWorker("replay", "laser", lambda: ReplaySource("rec.mcap", roles=("laser",)), q,
+                     backoff_initial=0.01, backoff_max=0.01)
+    w.start()
+    w.join(timeout=10.0)
+    assert not w.is_alive()
+    assert [m.seq for m in q.items] == [0, 1, 2]          # no duplicates from a restart
+    assert w.health.state == "finished" and w.health.restarts == 0
+    assert w.health.errors == {"replay_errors": 1}
