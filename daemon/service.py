@@ -29,6 +29,7 @@ from cgamap.daemon.supervisor import Supervisor
 log = logging.getLogger("cgamapd")
 
 LOSSY_ROLES = ("laser", "camera")  # the newest scan/frame matters; odometry never dropped
+POSE_LIMIT_M = 1e6  # |x|, |y| bound for set-pose: beyond it the map's extent cannot be drawn
 
 
 class Daemon:
@@ -56,6 +57,8 @@ class Daemon:
         self.taps: list[collections.deque] = []
         self.tap_cond = threading.Condition(self.lock)
         self.loaded_from: str | None = None
+        self.checkpoint_failures = 0
+        self.last_checkpoint_error: str | None = None
 
     # -- construction -----------------------------------------------------------------------
     def _build_supervisor(self, cfg: dict) -> Supervisor:
@@ -94,6 +97,7 @@ class Daemon:
             return 73  # EX_CANTCREAT
         notify.status("opening devices")
         self.supervisor.start()
+        rc = 0
         try:
             self._main_loop()
         finally:
@@ -104,9 +108,10 @@ class Daemon:
             with self.lock:
                 self._drain()
                 self.loop.process(final=True)
-                self.checkpoint("shutdown")
+                if self.checkpoint("shutdown")["class"] == "error":
+                    rc = 74  # EX_IOERR: the map of this run was not saved
             log.info("stopped in %.2f s", time.monotonic() - t0)
-        return 0
+        return rc
 
     def _main_loop(self) -> None:
         wd = notify.watchdog_period()
@@ -199,6 +204,8 @@ class Daemon:
                                     "config": self.config_path})
         except Exception as exc:  # noqa: BLE001 - a failed checkpoint must not stop mapping
             log.error("checkpoint failed: %s: %s", type(exc).__name__, exc)
+            self.checkpoint_failures += 1
+            self.last_checkpoint_error = f"{reason}: {type(exc).__name__}: {exc}"[:200]
             return {"class": "error", "error": f"checkpoint failed: {exc}"}
         finally:
             self.last_checkpoint_mono = time.monotonic()
@@ -275,6 +282,8 @@ class Daemon:
                   "checkpoint": {"saves": self.store.saves, "dir": str(self.state_dir),
                                  "last_duration_s": self.store.last_save_s,
                                  "last_saved_at": self.store.last_saved_at,
+                                 "failures": self.checkpoint_failures,
+                                 "last_error": self.last_checkpoint_error,
                                  "interval_s": self.cfg["checkpoint"]["interval"]}})
         for d in s["devices"]:
             d["rate_hz"] = round(self.loop.rate(d["name"]), 2) or d["rate_hz"]
@@ -303,6 +312,9 @@ class Daemon:
         pose = [float(req[k]) for k in ("x", "y", "theta")]
         if not all(np.isfinite(pose)):
             raise ValueError("x, y, theta must be finite")
+        if max(abs(pose[0]), abs(pose[1])) > POSE_LIMIT_M:
+            raise ValueError(f"x, y must be within +-{POSE_LIMIT_M:g} m")
+        pose[2] = float(np.arctan2(np.sin(pose[2]), np.cos(pose[2])))
         with self.lock:
             self.loop.set_pose(pose)
             return {"class": "pose", "pose": self.loop.pose_list()}

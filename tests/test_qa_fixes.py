@@ -6,6 +6,7 @@ import os
 import shutil
 import socket
 
+import numpy as np
 import pytest
 from cgamap.daemon.server import QueryServer
 from daemon_stack import short_dir
@@ -87,3 +88,46 @@ def test_replay_read_error_ends_the_replay_instead_of_restarting(monkeypatch):
     assert [m.seq for m in q.items] == [0, 1, 2]          # no duplicates from a restart
     assert w.health.state == "finished" and w.health.restarts == 0
     assert w.health.errors == {"replay_errors": 1}
+
+
+def _daemon(tmp_path, sockdir):
+    from cgamap.daemon import config as config_mod
+    from cgamap.daemon.service import Daemon
+
+    cfg = config_mod.validate({"devices": {}}, tmp_path)
+    return Daemon(cfg, state_dir=str(tmp_path / "state"),
+                  socket_path=os.path.join(sockdir, "d.sock"))
+
+
+def test_set_pose_refuses_huge_coordinates(tmp_path, sockdir):
+    """QA: x = 1e308 was accepted and poisoned the trajectory (map export failed forever)."""
+    d = _daemon(tmp_path, sockdir)
+    for bad in ({"x": 1e308, "y": 0, "theta": 0}, {"x": 0, "y": -2e6, "theta": 0},
+                {"x": 0, "y": 0, "theta": float("nan")}):
+        r = d.command({"cmd": "set-pose", **bad})
+        assert r["class"] == "error" and "set-pose" in r["error"], r
+    r = d.command({"cmd": "set-pose", "x": 1.0, "y": -2.0, "theta": 7.0})
+    assert r["class"] == "pose"
+    assert r["pose"][:2] == [1.0, -2.0] and abs(r["pose"][2] - (7.0 - 2 * np.pi)) < 1e-4
+
+
+def test_checkpoint_failures_counted_and_shutdown_failure_is_nonzero(tmp_path, sockdir):
+    import signal
+    import threading
+
+    d = _daemon(tmp_path, sockdir)
+
+    def fail(payload):
+        raise OSError(28, "No space left on device")
+    d.store.save = fail
+    assert d.checkpoint("interval")["class"] == "error"
+    st = d.command({"cmd": "status"})
+    assert st["checkpoint"]["failures"] == 1 and "No space" in st["checkpoint"]["last_error"]
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    threading.Timer(0.3, d.stop_event.set).start()
+    try:
+        assert d.run() == 74
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    assert d.checkpoint_failures >= 2
