@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
@@ -10,12 +11,34 @@ import numpy as np
 
 from .linemap import LineMap
 
+log = logging.getLogger(__name__)
+MAX_SIDE_PX = 10000  # 300 MB for an RGB image at the cap; beyond it the resolution coarsens
+
 
 def _frame(points: np.ndarray, resolution: float, border: float):
-    lo = points.min(0) - border
-    hi = points.max(0) + border
-    size = np.ceil((hi - lo) / resolution).astype(int) + 1
-    return lo, size
+    """Lower-left corner, size (px) and resolution (m/px) of the picture of ``points``.
+
+    An extent that would need more than MAX_SIDE_PX pixels a side (a far-off trajectory point,
+    say) is drawn at a coarser resolution, with a warning, rather than overflowing int or
+    allocating terabytes."""
+    if not (np.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"resolution must be a positive number of metres, not {resolution}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("map or trajectory holds non-finite coordinates; cannot draw them")
+    with np.errstate(over="ignore"):
+        lo = points.min(0) - border
+        hi = points.max(0) + border
+        span = hi - lo
+    if not np.all(np.isfinite(span)):
+        raise ValueError("map or trajectory spans more than a float can hold; cannot draw it")
+    need = float(np.max(span)) / resolution
+    if need > MAX_SIDE_PX - 1:
+        coarse = float(np.max(span)) / (MAX_SIDE_PX - 1)
+        log.warning("map extent %.4g x %.4g m needs %.3g px a side at %g m/px; drawn at "
+                    "%.4g m/px instead", *span, need, resolution, coarse)
+        resolution = coarse
+    size = np.minimum(np.ceil(span / resolution), MAX_SIDE_PX - 1).astype(int) + 1
+    return lo, size, resolution
 
 
 def _pix(p: np.ndarray, lo: np.ndarray, size: np.ndarray, resolution: float) -> np.ndarray:
@@ -32,7 +55,7 @@ def render_png(lmap: LineMap, path: str | Path, trajectory: np.ndarray | None = 
         if t is not None and len(t):
             pts.append(np.asarray(t)[:, :2])
     allp = np.concatenate(pts) if sum(len(p) for p in pts) else np.zeros((1, 2))
-    lo, size = _frame(allp, resolution, border)
+    lo, size, resolution = _frame(allp, resolution, border)
     img = np.full((size[1], size[0], 3), 255, np.uint8)
     if reference is not None and len(reference):
         cv2.polylines(img, [_pix(np.asarray(reference)[:, :2], lo, size, resolution)], False,
@@ -58,7 +81,7 @@ def export_occupancy(lmap: LineMap, stem: str | Path, resolution: float = 0.05,
     occupied on an unknown background.  Returns both paths."""
     stem = Path(stem)
     allp = np.concatenate([lmap.a, lmap.b]) if len(lmap) else np.zeros((1, 2))
-    lo, size = _frame(allp, resolution, border)
+    lo, size, resolution = _frame(allp, resolution, border)
     img = np.full((size[1], size[0]), 205, np.uint8)
     if len(lmap):
         pa = _pix(lmap.a, lo, size, resolution)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 from cgamap.mapping.linemap import LineMap
-from cgamap.mapping.render import export_occupancy, render_png
+from cgamap.mapping.render import MAX_SIDE_PX, export_occupancy, render_png
 
 
 def _box() -> LineMap:
@@ -47,3 +47,20 @@ def test_pgm_yaml_map_server_convention(tmp_path):
     row = h - 1 - round((0.0 - meta["origin"][1]) / 0.1)
     assert img[row, col] == 0
     assert img[row - 10, col] == 205  # one metre inside the room: not a wall
+
+
+def test_huge_extent_is_drawn_coarser_not_overflowing(tmp_path, caplog):
+    """QA: a trajectory point at 1e308 m overflowed the image size (int cast of inf/huge)."""
+    traj = np.array([[0.0, 0.0, 0.0], [1e12, 5.0, 0.0]])
+    with caplog.at_level("WARNING", logger="cgamap.mapping.render"):
+        render_png(_box(), tmp_path / "m.png", traj, resolution=0.05)
+    img = cv2.imread(str(tmp_path / "m.png"))
+    assert img is not None and max(img.shape[:2]) <= MAX_SIDE_PX
+    assert "drawn at" in caplog.text
+    with pytest.raises(ValueError, match="float"):
+        render_png(_box(), tmp_path / "n.png", np.array([[-1e308, 0, 0], [1e308, 0, 0.0]]))
+    with pytest.raises(ValueError, match="non-finite"):
+        render_png(_box(), tmp_path / "n.png", np.array([[np.inf, 0, 0.0]]))
+    pgm, yml = export_occupancy(LineMap(a=np.array([[0.0, 0.0]]), b=np.array([[1e9, 0.0]])),
+                                tmp_path / "occ")
+    assert max(cv2.imread(str(pgm), cv2.IMREAD_UNCHANGED).shape) <= MAX_SIDE_PX
