@@ -169,9 +169,12 @@ def map_from_json(doc, source: str = "<map>") -> LineMap:
 def load_map(path: str | Path) -> LineMap:
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise MapFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise MapFormatError(f"{path}: not a JSON map (binary data at byte {exc.start})") \
+            from None
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -131,3 +131,12 @@ def test_checkpoint_failures_counted_and_shutdown_failure_is_nonzero(tmp_path, s
         for s, h in handlers.items():
             signal.signal(s, h)
     assert d.checkpoint_failures >= 2
+
+
+def test_binary_map_json_is_a_map_format_error(tmp_path):
+    from cgamap.mapping.mapio import MapFormatError, load_map
+
+    p = tmp_path / "g.json"
+    p.write_bytes(bytes(range(256)) * 12)
+    with pytest.raises(MapFormatError, match="g.json: not a JSON map"):
+        load_map(p)
