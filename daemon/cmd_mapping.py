@@ -25,7 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     b = MAP_SUBPARSERS.add_parser("build", help="replay a CARMEN log through the 2D mapper")
     b.add_argument("--log", required=True, help="CARMEN log (.log, .clf, optionally .gz)")
-    b.add_argument("--out", required=True, help="output directory (created if missing)")
+    b.add_argument("--out", required=True,
+                   help="output directory (created if missing; an earlier map.json in it is "
+                        "kept as map.json.bak)")
     b.add_argument("--odom-noise", choices=["none", "low", "high"], default="none",
                    help="corrupt the log's odometry with this preset "
                         "(cgamap.mapping.odometry.ODOM_NOISE_PRESETS)")
@@ -39,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser("relocalize", help="relocalise scans in a map (Hough domain)")
     r.add_argument("--map", help="map.json written by 'cgamap map build'")
     r.add_argument("--log", help="CARMEN log whose scans are relocalised")
-    r.add_argument("--trials", type=int, default=200, help="number of random scans")
+    r.add_argument("--trials", type=int, default=200,
+                   help="number of random scans (at most the log's scan count)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--json", action="store_true", help="one JSON object on stdout")
     r.add_argument("--lenient", action="store_true", help="skip malformed log lines")
@@ -61,6 +64,8 @@ def _read_log(path: str, lenient: bool):
     from cgamap.drivers.carmen import CarmenFormatError, CarmenStats, read_scans
 
     p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"--log: {path}: is a directory (give the log file in it)")
     if not p.is_file():
         raise UsageError(f"--log: {path}: no such file")
     st = CarmenStats()
@@ -105,6 +110,7 @@ def run_build(args: argparse.Namespace) -> int:
             "scans": len(scans), "frame": "map = the log's first pose"}
     if "alignment_to_reference" in res.report:
         meta["alignment_to_reference"] = res.report["alignment_to_reference"]
+    _keep_previous(out / "map.json", args.quiet)
     save_map(res.map, out / "map.json", meta)
     render_png(res.map, out / "map.png", res.poses)
     export_occupancy(res.map, out / "map")
@@ -120,6 +126,21 @@ def run_build(args: argparse.Namespace) -> int:
         print(" ".join(f"{k}={report[k]}" for k in keys if k in report), file=sys.stderr)
     print(out / "map.json")
     return 0
+
+
+def _keep_previous(path: Path, quiet: bool) -> None:
+    """An earlier map in the output folder is kept as ``<name>.bak`` (one generation): a
+    rebuild into the same folder must not silently lose a map somebody worked for."""
+    if not path.exists():
+        return
+    bak = path.with_name(path.name + ".bak")
+    try:
+        path.replace(bak)
+    except OSError as exc:
+        raise UsageError(f"--out: cannot keep the earlier {path} as {bak.name} "
+                         f"({exc.strerror}); nothing written") from None
+    if not quiet:
+        print(f"map build: the earlier {path} is kept as {bak}", file=sys.stderr)
 
 
 def run_relocalize(args: argparse.Namespace) -> int:
@@ -145,8 +166,14 @@ def run_relocalize(args: argparse.Namespace) -> int:
     if any(s.pose_ref is None for s in scans):
         raise UsageError("--log: scans carry no reference poses to score against")
     align = _alignment(lmap.metadata.get("alignment_to_reference"))
-    res = relocalize_trials(lmap, scans, args.trials, args.seed, alignment=align,
-                            progress=None if args.json else _progress("relocalize", False))
+    trials = args.trials
+    if trials > len(scans):   # more would draw scans twice: the rate would count repeats
+        print(f"relocalize: --trials {trials} capped to the log's {len(scans)} scans",
+              file=sys.stderr)
+        trials = len(scans)
+    # progress goes to stderr, so --json's stdout stays one object; short runs stay quiet
+    res = relocalize_trials(lmap, scans, trials, args.seed, alignment=align,
+                            progress=_progress("relocalize", trials < 50))
     if args.json:
         print(json.dumps(res))
     else:

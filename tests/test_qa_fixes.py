@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -140,3 +141,42 @@ def test_binary_map_json_is_a_map_format_error(tmp_path):
     p.write_bytes(bytes(range(256)) * 12)
     with pytest.raises(MapFormatError, match="g.json: not a JSON map"):
         load_map(p)
+
+
+def _room_log(path, n: int = 12) -> None:
+    """A CARMEN log of ``n`` FLASER scans in a 8 m x 5 m room, robot creeping along x."""
+    ang = np.radians(np.arange(-90, 91))
+    lines = []
+    for k in range(n):
+        x, y, th = 2.0 + 0.05 * k, 2.0, 0.0
+        c, s = np.cos(ang + th), np.sin(ang + th)
+        with np.errstate(divide="ignore"):
+            tx = np.where(c > 0, (8 - x) / c, np.where(c < 0, -x / c, np.inf))
+            ty = np.where(s > 0, (5 - y) / s, np.where(s < 0, -y / s, np.inf))
+        r = np.minimum(tx, ty)
+        lines.append(f"FLASER 181 {' '.join(f'{v:.3f}' for v in r)} {x} {y} {th} {x} {y} {th} "
+                     f"{k * 0.1:.2f} host {k * 0.1:.2f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_map_cli_log_dir_backup_and_trial_cap(tmp_path, capsys):
+    from cgamap.daemon.cli import main
+
+    assert main(["map", "build", "--log", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "is a directory" in err and len(err.strip().splitlines()) == 1
+    log = tmp_path / "room.log"
+    _room_log(log)
+    out = tmp_path / "m"
+    assert main(["map", "build", "--log", str(log), "--out", str(out), "--quiet"]) == 0
+    first = (out / "map.json").read_text()
+    capsys.readouterr()
+    assert main(["map", "build", "--log", str(log), "--out", str(out)]) == 0
+    assert (out / "map.json.bak").read_text() == first
+    assert "kept as" in capsys.readouterr().err
+    rc = main(["relocalize", "--map", str(out / "map.json"), "--log", str(log), "--trials",
+               "500", "--json"])
+    assert rc == 0
+    out_, err = capsys.readouterr()
+    assert json.loads(out_)["trials"] == 12
+    assert "capped to the log's 12 scans" in err
