@@ -14,7 +14,11 @@
 4. Verification: the fraction of scan points within ``inlier_dist`` of a map segment (a
    distance field of the map, one lookup per point), then a refinement of the best few with
    the point-to-line correction of :mod:`.correction`, and a ranked list.  "Not found" when
-   the best score is under ``min_score``.
+   the best score is under ``min_score``.  Ranking is by the soft fit of the points (each
+   counts 1 - (d / inlier)^2), which tells the tighter of two symmetric places apart.
+3b. Cluttered scans with one or two short lines give no line-pair intersection near the truth:
+   a correlative sweep (the scan points against the map's near-wall mask, on a coarse grid,
+   per rotation hypothesis) adds its best cells as further translation hypotheses.
 
 Symmetric places (corridors, identical rooms) give several hypotheses with similar scores; all
 are returned, ranked.
@@ -50,10 +54,14 @@ class RelocParams:
     field_resolution: float = 0.05
     verify_points: int = 40
     polish: bool = True               # final local search on the soft point score
-    fit_weight: float = 0.0           # ranking = score + fit_weight * fit (neutral on Intel)
+    fit_weight: float = 100.0         # ranking = score + fit_weight * fit: by the soft fit,
+    # which tells the tighter of two symmetric places apart (the inlier count only breaks ties)
     endpoint_lines: int = 1           # scan lines whose end points propose corridor positions
     crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
     crossing_step: float = 0.08       # free-space samples along each beam (m)
+    map_share: float = 0.5            # a map line pairs with a scan line at least this long
+    sweep_cells: int = 10             # best cells of a correlative sweep per rotation (0: off)
+    sweep_grid: float = 0.25          # cell of the sweep (m)
 
 
 @dataclass
@@ -87,6 +95,18 @@ class DistanceField:
             cv2.line(img, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 0, 1)
         self.dist = cv2.distanceTransform(img, cv2.DIST_L2, 5).astype(np.float32) * resolution
         self.far = float(border)
+
+    def padded_mask(self, thr: float, pad_m: float = 30.0) -> tuple[int, np.ndarray]:
+        """(pad, near-wall mask ``dist < thr`` with ``pad`` false pixels on every side),
+        cached: shifted slices of it read points up to ``pad_m`` metres from the laser."""
+        key = (round(thr, 4), pad_m)
+        if getattr(self, "_mask_key", None) != key:
+            pad = int(np.ceil(pad_m / self.res))
+            m = np.zeros((self.dist.shape[0] + 2 * pad + 1, self.dist.shape[1] + 2 * pad + 1),
+                         np.uint8)
+            m[pad: pad + self.dist.shape[0], pad: pad + self.dist.shape[1]] = self.dist < thr
+            self._mask_key, self._mask = key, (pad, m)
+        return self._mask
 
     def lookup(self, p: np.ndarray) -> np.ndarray:
         """Distances for points (..., 2); points off the grid count as far."""
@@ -159,7 +179,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         ra, rb = sa @ R.T, sb @ R.T
         n_l, c_l, phi_l = _line_params(ra, rb)
         dphi = np.abs(_wrap(2 * (phi_g[:, None] - phi_l[None, :]))) / 2
-        pair = (dphi < tol) & (len_g[:, None] > 0.5 * len_l[None, :] - 0.3)
+        pair = (dphi < tol) & (len_g[:, None] > P.map_share * len_l[None, :] - 0.3)
         # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
         sgn = np.sign(n_g @ n_l.T)
         # exact rotation residual of every pairing: each candidate gets the rotation its own
@@ -234,6 +254,10 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         sums_d = np.bincount(flat, D, votes.size)[top]
         cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
         cand_R.append(th + sums_d / votes[top])
+    if P.sweep_cells and len(rots):
+        Ts_, Rs_ = _sweep(field, pts, rots, P)
+        cand_T.append(Ts_)
+        cand_R.append(Rs_)
     if not cand_T:
         return RelocResult(False, None, 0.0, [])
     T = np.concatenate(cand_T)
@@ -268,6 +292,32 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if not hyps or hyps[0].score < P.min_score:
         return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocParams):
+    """Translation hypotheses that do not need two scan lines on two map lines: for every
+    rotation hypothesis, the scan points are correlated with the map's near-wall mask at every
+    cell of a coarse grid (one shifted slice of the mask per point), and the best cells are
+    returned.  The mask is widened by half a cell's diagonal, so a cell's count bounds the
+    score of any pose inside it.  Cluttered scans with one or two short lines need this."""
+    step = max(1, int(round(P.sweep_grid / field.res)))
+    thr = P.coarse_dist + 0.71 * step * field.res
+    pad, mask = field.padded_mask(thr)
+    ny, nx = (np.array(field.dist.shape) + step - 1) // step
+    out_T, out_R = [], []
+    for th in rots:  # a dozen rotations, each a sum of one slice per point
+        c, s = np.cos(th), np.sin(th)
+        off = np.round((pts @ np.array([[c, s], [-s, c]])) / field.res).astype(int) + pad
+        keep = np.all((off >= 0) & (off <= 2 * pad), axis=-1)
+        acc = np.zeros((ny, nx), np.int16)
+        for ox, oy in off[keep]:
+            acc += mask[oy: oy + ny * step: step, ox: ox + nx * step: step]
+        k = min(P.sweep_cells, acc.size)
+        best = np.argpartition(-acc.ravel(), k - 1)[:k]
+        iy, ix = np.divmod(best, nx)
+        out_T.append(field.lo + np.column_stack([ix, iy]) * step * field.res)
+        out_R.append(np.full(k, th))
+    return np.concatenate(out_T), np.concatenate(out_R)
 
 
 def _polish(field: DistanceField, pts: np.ndarray, pose: np.ndarray, inlier: float,
