@@ -160,16 +160,40 @@ class PanTiltConfig:
                        tilt=replace(self.tilt, dxl_id=tilt_id))
 
 
+# pyserial URL handlers that make sense for a servo bus, besides a plain device path
+_PYSERIAL_SCHEMES = ("loop", "rfc2217", "spy", "alt")
+
+
 def _port_url(url: str) -> tuple[str, int | None]:
-    """pyserial URL or path, and a baud rate from the query (``baudrate=`` / ``baud=``)."""
-    parts = urlsplit(url)
+    """pyserial URL or path, and a baud rate from the query (``baudrate=`` / ``baud=``).
+    Raises PanTiltError naming the URL for anything the port could not be opened with."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port if parts.scheme in ("tcp", "socket") else None
+    except ValueError as exc:     # e.g. a non-numeric port after the host
+        raise PanTiltError(f"{url}: malformed URL ({exc})") from None
     opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
     baud = opts.get("baudrate", opts.get("baud"))
-    baud_i = int(baud) if baud else None
+    baud_i = None
+    if baud:
+        try:
+            baud_i = int(baud)
+        except ValueError:
+            raise PanTiltError(f"{url}: baud rate {baud!r} is not a whole number") from None
+        if baud_i <= 0:
+            raise PanTiltError(f"{url}: baud rate {baud_i} must be positive")
     if parts.scheme in ("tcp", "socket"):
+        if not parts.hostname or not port:
+            raise PanTiltError(f"{url}: {parts.scheme}:// needs host:port "
+                               "(e.g. tcp://127.0.0.1:4001)")
         return f"socket://{parts.netloc}", baud_i
     if parts.scheme == "serial":
+        if not parts.path:
+            raise PanTiltError(f"{url}: serial:// needs a device path (serial:///dev/ttyUSB0)")
         return parts.path, baud_i
+    if parts.scheme and parts.scheme not in _PYSERIAL_SCHEMES:
+        raise PanTiltError(f"{url}: unknown URL scheme {parts.scheme + '://'!r}; use a device "
+                           "path, serial://, tcp://host:port or socket://host:port")
     return url.split("?")[0], baud_i
 
 
@@ -301,7 +325,7 @@ class PanTilt:
         self._port.baudrate = self.baudrate
         try:
             self._port.openPort()
-        except (OSError, serial.SerialException) as exc:
+        except (OSError, serial.SerialException, ValueError, KeyError) as exc:  # KeyError: loop://?x
             raise PanTiltError(f"{self.config.url}: cannot open: {exc}") from exc
         if self.config.protocol not in (1.0, 2.0):
             raise PanTiltError(f"{self.config.url}: protocol {self.config.protocol}: 1.0 or 2.0")

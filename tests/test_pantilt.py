@@ -393,3 +393,24 @@ def test_cli_pantilt_protocol1(twin_p1, capsys, cli_main):
                      "0.2", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["pan"] == pytest.approx(-0.3, abs=0.006) and out["models"] == {"1": 12, "2": 12}
+
+
+@pytest.mark.parametrize("url, needle", [
+    ("/dev/ttyUSB0?baudrate=abc", "not a whole number"),
+    ("/dev/ttyUSB0?baud=-5", "must be positive"),
+    ("bogus://x", "unknown URL scheme"),
+    ("socket://", "needs host:port"),
+    ("tcp://localhost", "needs host:port"),
+    ("tcp://localhost:abc", "malformed URL"),
+    ("serial://", "needs a device path"),
+])
+def test_bad_port_urls_are_pantilt_errors(url, needle):
+    """QA: these raised ValueError/TypeError from the driver (only the CLI guarded them)."""
+    with pytest.raises(PanTiltError, match=needle) as ei:
+        PanTilt(PanTiltConfig(url=url)).open()
+    assert url.split("?")[0] in str(ei.value)
+
+
+def test_pyserial_refusing_the_port_is_a_pantilt_error():
+    with pytest.raises(PanTiltError, match="cannot open"):
+        PanTilt(PanTiltConfig(url="rfc2217://")).open()
