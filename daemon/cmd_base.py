@@ -265,7 +265,9 @@ def run_pantilt(args: argparse.Namespace) -> int:
         cfg = replace(cfg, profile_velocity=args.velocity)
     try:
         head = PanTilt(cfg)
-    except ValueError as exc:  # a malformed URL query (?baudrate=abc)
+    except PanTiltError as exc:  # a malformed URL (?baudrate=abc, no host:port): names it
+        raise UsageError(f"pantilt: --device {exc}") from None
+    except ValueError as exc:
         raise UsageError(f"pantilt: --device {args.device}: {exc}") from None
     if args.action == "move":   # refuse a bad goal before even opening the port
         try:
