@@ -100,8 +100,9 @@ def run_odom(args: argparse.Namespace) -> int:
                         ("--wheel-radius", args.wheel_radius), ("--track", args.track),
                         ("--ticks-per-rev", args.ticks_per_rev)):
         _positive_finite("odom", flag, value)
-    if args.unit is not None and not 0 <= args.unit <= 255:
-        raise UsageError(f"odom: --unit: a Modbus device id is 0..255, got {args.unit}")
+    if args.unit is not None and not 1 <= args.unit <= 247:
+        raise UsageError(f"odom: --unit: a Modbus unit id is 1..247 (0 is broadcast, no "
+                         f"replies), got {args.unit}")
     drive = _pair(args.drive, "--drive", what_cmd="odom") if args.drive else None
     cfg = ModbusBaseConfig(url=args.device, device_id=args.unit, rate_hz=args.rate,
                            wheel_radius=args.wheel_radius, track_width=args.track,
@@ -113,19 +114,16 @@ def run_odom(args: argparse.Namespace) -> int:
     geom = WheelGeometry(cfg.wheel_radius, cfg.track_width, cfg.ticks_per_rev)
     try:
         base = ModbusBase(cfg)
-    except ModbusBaseError as exc:  # the driver names the URL
+    except ValueError as exc:  # ModbusBaseConfigError (?unit=abc, bad scheme): names the URL
+        raise UsageError(f"odom: --device {exc}") from None
+    except ModbusBaseError as exc:
         raise UsageError(f"odom: {exc}", 1) from None
-    except ValueError as exc:  # a malformed query (?unit=abc)
-        raise UsageError(f"odom: --device {args.device}: {exc}") from None
-    if not 0 <= base.device_id <= 255:
-        raise UsageError(f"odom: --device {args.device}: Modbus device id must be 0..255, "
-                         f"got {base.device_id}")
     try:
-        base.open()
+        base.open()            # its error says why (no such device, connection refused, ...)
         if drive is not None and not base.set_wheel_speeds(*drive):
             raise ModbusBaseError("wheel speed set-point not acknowledged")
     except ModbusBaseError as exc:
-        raise UsageError(f"odom: {exc}{_missing_port(args.device)}", 1) from None
+        raise UsageError(f"odom: {exc}", 1) from None
     odo = OdometryIntegrator(geom)
     printed = 0
     # SIGTERM/SIGHUP (timeout, systemd, a closed terminal) must reach the finally below:
@@ -181,19 +179,6 @@ def _stdout_closed() -> int:
 def _positive_finite(cmd: str, flag: str, value: float) -> None:
     if not (math.isfinite(value) and value > 0):
         raise UsageError(f"{cmd}: {flag}: must be a positive number, got {value}")
-
-
-def _missing_port(url: str) -> str:
-    """Why a serial device could not be opened, when the reason is that it is not there."""
-    path = url.split("://", 1)[1] if url.startswith(("serial://", "rtu://")) else url
-    path = path.split("?", 1)[0]
-    if "://" in url and not url.startswith(("serial://", "rtu://")) or not path.startswith("/"):
-        return ""
-    if not os.path.exists(path):
-        return " (no such device)"
-    if os.path.isdir(path):
-        return " (is a directory, not a serial port)"
-    return ""
 
 
 # -- pantilt ----------------------------------------------------------------------------------

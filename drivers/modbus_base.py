@@ -40,8 +40,10 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 import select
+import socket
 import termios
 import time
 from collections.abc import Iterator, Sequence
@@ -208,6 +210,17 @@ class ModbusBaseError(Exception):
     """The base could not be opened or a request was refused before sending."""
 
 
+class ModbusBaseConfigError(ModbusBaseError, ValueError):
+    """The URL or configuration is unusable (bad scheme, unit id, baud rate)."""
+
+
+def _int_option(url: str, name: str, value: Any) -> int:
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        raise ModbusBaseConfigError(f"{url}: {name} {value!r} is not a whole number") from None
+
+
 def _parse_url(url: str) -> tuple[str, str, int | None, dict[str, str]]:
     """(kind, host or path, port, options) with kind tcp, rtu+tcp or rtu."""
     if "://" not in url and re.fullmatch(r"[\w.\-]+:\d+(\?.*)?", url):
@@ -215,16 +228,20 @@ def _parse_url(url: str) -> tuple[str, str, int | None, dict[str, str]]:
     parts = urlsplit(url)
     opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
     if parts.scheme in ("tcp", "modbus+tcp", "rtu+tcp", "socket"):
-        if not parts.hostname or not parts.port:
-            raise ModbusBaseError(f"{url}: expected {parts.scheme}://host:port")
+        try:
+            port = parts.port
+        except ValueError:          # a non-numeric or out-of-range port
+            port = None
+        if not parts.hostname or not port:
+            raise ModbusBaseConfigError(f"{url}: expected {parts.scheme}://host:port")
         kind = "tcp" if parts.scheme in ("tcp", "modbus+tcp") else "rtu+tcp"
-        return kind, parts.hostname, parts.port, opts
+        return kind, parts.hostname, port, opts
     if parts.scheme in ("serial", "rtu", ""):
         path = parts.path if parts.scheme else url.split("?")[0]
         if not path:
-            raise ModbusBaseError(f"{url}: no serial device path")
+            raise ModbusBaseConfigError(f"{url}: no serial device path")
         return "rtu", path, None, opts
-    raise ModbusBaseError(f"{url}: unsupported scheme {parts.scheme!r} "
+    raise ModbusBaseConfigError(f"{url}: unsupported scheme {parts.scheme!r} "
                           "(tcp://, rtu+tcp://, serial:// or a device path)")
 
 
@@ -240,15 +257,24 @@ class ModbusBase:
         self._client = client
         kind, where, port, opts = _parse_url(config.url)
         self._kind, self._where, self._port = kind, where, port
-        self.device_id = int(config.device_id if config.device_id is not None
-                             else opts.get("unit", opts.get("device_id", 1)))
-        self.baudrate = int(config.baudrate if config.baudrate is not None
-                            else opts.get("baudrate", opts.get("baud", 115200)))
+        url = config.url
+        self.device_id = _int_option(url, "unit id", config.device_id if config.device_id
+                                     is not None else opts.get("unit", opts.get("device_id", 1)))
+        # 0 is broadcast (no replies: reads impossible); 248..255 are reserved
+        if not 1 <= self.device_id <= 247:
+            raise ModbusBaseConfigError(f"{url}: Modbus unit id must be 1..247 (0 is broadcast, "
+                                        f"no replies), got {self.device_id}")
+        self.baudrate = _int_option(url, "baud rate", config.baudrate if config.baudrate
+                                    is not None else opts.get("baudrate", opts.get("baud",
+                                                                                   115200)))
+        if self.baudrate <= 0:
+            raise ModbusBaseConfigError(f"{url}: baud rate must be positive, got {self.baudrate}")
         self._prev_raw: dict[str, int] = {}
         self._count: dict[str, int] = {}
         self._seq = 0
         self._connected = False
         self._failing = False
+        self._answered = False     # any reply since open: failures before it are the caller's
         self._next_connect = 0.0
 
     # -- connection ---------------------------------------------------------------------
@@ -272,9 +298,27 @@ class ModbusBase:
         if self._client is None:
             self._client = self._make_client()
         if not self._client.connect():
-            raise ModbusBaseError(f"{self.config.url}: cannot connect")
+            raise ModbusBaseError(f"{self.config.url}: cannot connect{self._why_not()}")
         self._connected = True
+        self._answered = False
         return self
+
+    def _why_not(self) -> str:
+        """Why connecting failed, as far as the OS says (pymodbus only returns False)."""
+        if self._kind == "rtu":
+            if not os.path.exists(self._where):
+                return " (no such device)"
+            if os.path.isdir(self._where):
+                return " (is a directory, not a serial port)"
+            if not os.access(self._where, os.R_OK | os.W_OK):
+                return " (permission denied: is the user in the dialout group?)"
+            return ""
+        try:
+            with socket.create_connection((self._where, self._port),
+                                          timeout=self.config.timeout_s):
+                return ""
+        except OSError as exc:
+            return f" ({exc.strerror or exc})"
 
     def close(self) -> None:
         if self._client is not None:
@@ -305,8 +349,10 @@ class ModbusBase:
 
     # -- transactions -------------------------------------------------------------------
     def _log_failure(self, what: str, exc: Exception) -> None:
-        """Warn once when the device starts failing; the counters carry the rest."""
-        level = logging.DEBUG if self._failing else logging.WARNING
+        """Warn once when a device that answered starts failing; the counters carry the rest.
+        One that never answered is reported by the caller (poll's silence error, the CLI's
+        line, the supervisor's restart): a warning here would say the same thing twice."""
+        level = logging.WARNING if self._answered and not self._failing else logging.DEBUG
         self._failing = True
         log.log(level, "%s: %s (%s)", self.config.url, what, exc)
 
@@ -342,6 +388,7 @@ class ModbusBase:
             self._drain()
             return None
         self._failing = False
+        self._answered = True
         if rr.isError():
             code = getattr(rr, "exception_code", None)
             if code is None:  # some pymodbus paths return an error object for timeouts

@@ -303,7 +303,7 @@ def test_cli_odom_json_lines(twin_factory, capsys, cli_main):
 
 
 def test_cli_odom_errors_are_one_line(twin_factory, capsys, cli_main):
-    assert cli_main(["odom", "--device", "http://nowhere", "--count", "1"]) == 1
+    assert cli_main(["odom", "--device", "http://nowhere", "--count", "1"]) == 2  # usage
     err = capsys.readouterr().err
     assert err.startswith("cgamap: odom:") and err.count("\n") == 1
     tw = twin_factory()
@@ -385,3 +385,47 @@ def test_cli_odom_drive_moves_the_twin_and_stops_it(twin_factory, capsys, cli_ma
     assert last["theta"] < -0.05 and abs(last["x"]) < 1e-6     # turning in place, clockwise
     assert tw._cmd == [0.0, 0.0]                                # stopped at the end
     assert cli_main(["odom", "--device", tw.address, "--drive", "5"]) == 2
+
+
+@pytest.mark.parametrize("url, needle", [
+    ("tcp://127.0.0.1:1?unit=abc", "unit id 'abc' is not a whole number"),
+    ("tcp://127.0.0.1:1?unit=0", "1..247"),
+    ("tcp://127.0.0.1:1?unit=250", "1..247"),
+    ("/dev/ttyX?baudrate=fast", "baud rate 'fast'"),
+    ("/dev/ttyX?baud=0", "must be positive"),
+    ("tcp://127.0.0.1:http", "host:port"),
+])
+def test_bad_url_options_are_config_errors(url, needle):
+    from cgamap.drivers.modbus_base import ModbusBaseConfigError
+
+    with pytest.raises(ModbusBaseConfigError, match=needle) as ei:
+        ModbusBase(ModbusBaseConfig(url=url))
+    assert isinstance(ei.value, ModbusBaseError) and url.split("?")[0] in str(ei.value)
+
+
+def test_open_says_why_it_cannot_connect(tmp_path):
+    import socket
+
+    with socket.socket() as s:          # a port nobody listens on (bound, never listening)
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        with pytest.raises(ModbusBaseError, match="cannot connect .*refused"):
+            ModbusBase(ModbusBaseConfig(url=f"tcp://127.0.0.1:{port}", timeout_s=0.3)).open()
+    with pytest.raises(ModbusBaseError, match="no such device"):
+        ModbusBase(ModbusBaseConfig(url=str(tmp_path / "ttyNOPE"))).open()
+
+
+def test_a_base_that_never_answered_logs_no_warning(caplog):
+    """QA: the CLI printed a WARNING line, then its own error line, for one problem."""
+    import socket
+
+    with socket.socket() as srv:        # accepts, never replies
+        srv.bind(("127.0.0.1", 0))
+        srv.listen()
+        base = ModbusBase(ModbusBaseConfig(url=f"tcp://127.0.0.1:{srv.getsockname()[1]}",
+                                           timeout_s=0.1, rate_hz=50.0))
+        with caplog.at_level("DEBUG", logger="cgamap.drivers.modbus_base"), base:
+            with pytest.raises(ModbusBaseError, match="no reply"):
+                for _ in base.poll(max_silence_s=0.3):
+                    pass
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
