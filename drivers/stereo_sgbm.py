@@ -79,6 +79,16 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     return img
 
 
+def check_width(params: SgbmParams, width: int) -> None:
+    """Refuse a search range as wide as the image: OpenCV then computes a negative buffer size
+    and fails with "Failed to allocate 18446744073... bytes" instead of saying why."""
+    reach = params.num_disparities + max(params.min_disparity, 0)
+    if width <= reach:
+        raise ValueError(f"sgbm: num_disparities {params.num_disparities} (+ min_disparity "
+                         f"{params.min_disparity}) needs images wider than {reach} px, got "
+                         f"{width} px; lower num_disparities")
+
+
 def compute_disparity(left: np.ndarray, right: np.ndarray, params: SgbmParams | None = None,
                       matcher=None) -> np.ndarray:
     """Disparity in pixels (float32) of the left image of a rectified pair; NaN where the
@@ -87,6 +97,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, params: SgbmParams | 
     left, right = to_gray(left), to_gray(right)
     if left.shape != right.shape:
         raise ValueError(f"stereo pair: image sizes differ {left.shape} vs {right.shape}")
+    check_width(params, left.shape[1])
     matcher = matcher or make_matcher(params)
     raw = matcher.compute(left, right)  # int16, fixed point with 4 fractional bits
     disp = raw.astype(np.float32) / 16.0

@@ -273,3 +273,13 @@ def test_mount_from_hand_eye_uses_its_rotation():
                                   CameraMount(t_axis=(0.1, 0.0, 0.9), t_eye=(0.06, 0.03, 0.05)))
     assert not np.allclose(expect[:3, :3], nominal[:3, :3])
     assert CameraMount.from_dict({"t_axis": [0, 0, 1], "R_eye": R.tolist()}).R_eye is not None
+
+
+def test_search_range_wider_than_the_image_is_refused():
+    """QA: OpenCV said "Failed to allocate 18446744073... bytes" for num_disparities >= width."""
+    img = np.random.default_rng(0).integers(0, 255, (40, 64)).astype(np.uint8)
+    with pytest.raises(ValueError, match="wider than 64 px, got 64 px"):
+        compute_disparity(img, img, SgbmParams(num_disparities=64))
+    with pytest.raises(ValueError, match="wider than 72 px"):
+        compute_disparity(img, img, SgbmParams(num_disparities=64, min_disparity=8))
+    assert compute_disparity(img, img, SgbmParams(num_disparities=48)).shape == (40, 64)
