@@ -9,11 +9,18 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import platform
 import sys
 import time
 import traceback
 from pathlib import Path
+
+# Single-threaded BLAS unless the caller says otherwise (set before any module imports
+# numpy): on a shared 2-core machine threaded BLAS spins against other processes and makes
+# small matrix products erratic and up to 10x slower.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 HERE = Path(__file__).resolve().parent
 
