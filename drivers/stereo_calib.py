@@ -167,14 +167,36 @@ def load_calibration(path: str | Path) -> StereoCalibration:
     import yaml
 
     path = Path(path)
-    text = path.read_text()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"stereo calibration {path}: not a YAML text file (binary data at "
+                         f"byte {exc.start})") from None
     if text.lstrip().startswith("%YAML:1.0"):
-        data = _read_filestorage(path)
+        import cv2
+
+        try:
+            data = _read_filestorage(path)
+        except (cv2.error, SystemError) as exc:   # SystemError: cv2's parse error surfacing
+            raise ValueError(f"stereo calibration {path}: OpenCV cannot parse it "
+                             f"({str(exc).strip().splitlines()[-1]})") from None
     else:
-        data = yaml.safe_load(text)
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            what = getattr(exc, "problem", None) or type(exc).__name__
+            raise ValueError(f"stereo calibration {path}: YAML syntax error{where}: "
+                             f"{what}") from None
     if not isinstance(data, dict):
         raise ValueError(f"stereo calibration {path}: expected a mapping of fields")
-    return calibration_from_dict(data)
+    try:
+        return calibration_from_dict(data)
+    except ValueError as exc:
+        if str(path) in str(exc):
+            raise
+        raise ValueError(f"stereo calibration {path}: {exc}") from None
 
 
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:

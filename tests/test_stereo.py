@@ -283,3 +283,15 @@ def test_search_range_wider_than_the_image_is_refused():
     with pytest.raises(ValueError, match="wider than 72 px"):
         compute_disparity(img, img, SgbmParams(num_disparities=64, min_disparity=8))
     assert compute_disparity(img, img, SgbmParams(num_disparities=48)).shape == (40, 64)
+
+
+def test_broken_calibration_files_are_value_errors_naming_the_file(tmp_path):
+    """QA: a YAML syntax error escaped as yaml.YAMLError."""
+    cases = {"syntax.yaml": b"fx: 500\ncx: [320\n", "binary.yaml": bytes(range(256)) * 4,
+             "fs.yaml": b"%YAML:1.0\n---\nK: !!opencv-matrix\n  rows: 3\n  cols: [\n"}
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ValueError, match=f"stereo calibration .*{name}"):
+            load_calibration(tmp_path / name)
+    with pytest.raises(ValueError, match="line 3"):
+        load_calibration(tmp_path / "syntax.yaml")
