@@ -178,8 +178,9 @@ def load_calibration(path: str | Path) -> StereoCalibration:
         try:
             data = _read_filestorage(path)
         except (cv2.error, SystemError) as exc:   # SystemError: cv2's parse error surfacing
-            raise ValueError(f"stereo calibration {path}: OpenCV cannot parse it "
-                             f"({str(exc).strip().splitlines()[-1]})") from None
+            why = str(exc.__cause__ or exc).strip().splitlines()[-1]
+            raise ValueError(f"stereo calibration {path}: OpenCV cannot parse it ({why})") \
+                from None
     else:
         try:
             data = yaml.safe_load(text)
