@@ -275,8 +275,14 @@ def read_npy(path: str | Path) -> np.ndarray:
     name = str(path)
     try:
         arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise CloudFormatError(f"{name}: cannot load as .npy ({exc})") from None
+    except (OSError, ValueError, EOFError) as exc:   # EOFError: empty or cut file
+        raise CloudFormatError(f"{name}: cannot load as .npy ({exc or 'file ends early'})") \
+            from None
+    if not isinstance(arr, np.ndarray):               # an .npz archive
+        arr.close()
+        raise CloudFormatError(f"{name}: an .npz archive, not one .npy array")
+    if arr.dtype.kind not in "biuf":
+        raise CloudFormatError(f"{name}: expected numbers, got dtype {arr.dtype}")
     if arr.ndim not in (2, 3) or arr.shape[-1] != 3:
         raise CloudFormatError(f"{name}: expected (n, 3) or (H, W, 3), got shape {arr.shape}")
     return arr.astype(float)

@@ -397,3 +397,18 @@ def _fuzz_reader(tmp_path, name: str, examples: int) -> None:
         assert cloud.shape[-1] == 3
 
     mutate()
+
+
+def test_broken_npy_files_are_cloud_format_errors(tmp_path):
+    """QA: np.load's EOFError (empty file) escaped the reader."""
+    (tmp_path / "empty.npy").write_bytes(b"")
+    full = tmp_path / "full.npy"
+    np.save(full, np.zeros((100, 3)))
+    (tmp_path / "cut.npy").write_bytes(full.read_bytes()[:200])
+    (tmp_path / "junk.npy").write_bytes(bytes(range(256)))
+    np.savez(tmp_path / "arch.npz", a=np.zeros((3, 3)))
+    (tmp_path / "arch.npz").rename(tmp_path / "arch.npy")
+    np.save(tmp_path / "text.npy", np.array([["a", "b", "c"]]))
+    for name in ("empty", "cut", "junk", "arch", "text"):
+        with pytest.raises(CloudFormatError, match=f"{name}.npy"):
+            read_cloud(tmp_path / f"{name}.npy")
