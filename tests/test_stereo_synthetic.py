@@ -180,3 +180,10 @@ def test_pinhole_fast_path_equals_general_raycast(world, pose, tilt):
     hit = i1 >= 0
     assert np.allclose(t1[hit], t2[hit]) and np.allclose(a1[hit], a2[hit])
     assert np.allclose(b1[hit], b2[hit])
+
+
+def test_unknown_scene_lists_the_3d_scenes_too():
+    with pytest.raises(ValueError, match="unknown world 'nope'") as ei:
+        get_scene("nope")
+    for name in ("corridor", "room", "loop", "stairs", "corridor-boxes"):
+        assert name in str(ei.value)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .world import World, get_world
+from .world import WORLDS, World, get_world
 
 
 @dataclass
@@ -208,4 +208,7 @@ def get_scene(name: str) -> Scene3D:
     the 3D-only scenes ("stairs", "corridor-boxes")."""
     if name in SCENES:
         return SCENES[name]()
+    if name not in WORLDS:
+        raise ValueError(f"unknown world {name!r}; choose from "
+                         f"{', '.join(sorted(WORLDS) + sorted(SCENES))}")
     return scene_from_world(get_world(name))
