@@ -193,7 +193,9 @@ def cmd_collect(args: argparse.Namespace) -> int:
     try:
         code = run_collect(args)
     except CollectError as exc:
-        raise _usage_error(f"calib collect: {exc}") from None
+        err = _usage_error(f"calib collect: {exc}")
+        err.exit_code = exc.exit_code
+        raise err from None
     if previous and backup_path(args.out).is_file():
         print(f"calib collect: the previous {args.out} is kept as {backup_path(args.out)}",
               file=sys.stderr)

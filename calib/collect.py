@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +31,14 @@ DXL_TICK = 2 * math.pi / 4096  # Dynamixel X-series position resolution
 
 class CollectError(Exception):
     """Bad arguments or an unusable device for ``calib collect``; one line for the user."""
+
+    exit_code = 2
+
+
+class TooFewPosesError(CollectError):
+    """The run saw fewer than 3 usable poses: nothing is written (exit 1, not a usage error)."""
+
+    exit_code = 1
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -306,6 +314,12 @@ def run_collect(args: argparse.Namespace) -> int:
         source.close()
     report.pairs.meta["source"] = "sim" if args.sim else f"{args.pantilt} {args.camera}"
     report.pairs.meta["skipped"] = [{"pose": k, "reason": r} for k, r in report.skipped]
+    n = len(report.pairs)
+    if n < 3:   # hand-eye needs 3 poses: an empty file would only replace a useful one
+        reasons = Counter(r for _, r in report.skipped)
+        why = ", ".join(f"{c} x {r}" for r, c in reasons.most_common(3)) or "none skipped"
+        raise TooFewPosesError(f"only {n} usable poses of {report.visited} (need 3; {why}); "
+                               f"check the target and the lighting; {args.out} not written")
     try:
         save_pairs(args.out, report.pairs)
         if args.sim and args.truth:
@@ -315,7 +329,6 @@ def run_collect(args: argparse.Namespace) -> int:
                  "base_T_target": rig.base_T_target.tolist()}, indent=1) + "\n")
     except OSError as exc:
         raise CollectError(f"cannot write: {exc}") from None
-    n = len(report.pairs)
     summary = {"out": args.out, "pairs": n, "visited": report.visited,
                "skipped": report.pairs.meta["skipped"]}
     if args.json:
@@ -323,8 +336,4 @@ def run_collect(args: argparse.Namespace) -> int:
     else:
         print(f"recorded {n} of {report.visited} poses to {args.out}"
               f" ({len(report.skipped)} skipped)")
-    if n < 3:
-        print("calib collect: fewer than 3 usable poses; check the target and the lighting",
-              file=sys.stderr)
-        return 1
     return 0
