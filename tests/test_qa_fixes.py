@@ -180,3 +180,47 @@ def test_map_cli_log_dir_backup_and_trial_cap(tmp_path, capsys):
     out_, err = capsys.readouterr()
     assert json.loads(out_)["trials"] == 12
     assert "capped to the log's 12 scans" in err
+
+
+_SPAM = """
+import argparse, sys
+from cgamap.daemon import cli
+
+def spam(args):
+    if args.peer:
+        raise BrokenPipeError(32, "Broken pipe")
+    for _ in range(10**6):
+        print("x" * 100)
+
+def parser():
+    p = argparse.ArgumentParser()
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    s = p.add_subparsers().add_parser("spam")
+    s.add_argument("--peer", action="store_true")
+    s.set_defaults(func=spam)
+    return p
+
+cli.build_parser = parser
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_closed_stdout_ends_quietly_with_exit_0():
+    """`cgamap ... | head`: exit 0, nothing on stderr (main catches BrokenPipeError once)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", _SPAM, "spam"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.read(1000)
+    proc.stdout.close()
+    try:
+        err = proc.stderr.read()
+        assert proc.wait(timeout=30) == 0, err
+    finally:
+        proc.kill()
+    assert err == b""
+    # a broken pipe that is not stdout (a peer's socket) is one line, not exit 0
+    out = subprocess.run([sys.executable, "-c", _SPAM, "spam", "--peer"], capture_output=True,
+                         timeout=30)
+    assert out.returncode == 74 and out.stderr.decode().count("\n") == 1, out.stderr
