@@ -134,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int:
+    from cgamap.drivers.stereo_sgbm import SgbmRangeError
+
     try:
         grabber.open()
     except DeviceNotFound as exc:
@@ -149,6 +151,9 @@ def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int
                   f"median depth {med:.2f} m -> {args.out}/{rec['left']}", flush=True)
     except TimeoutError as exc:
         raise UsageError(f"stereo: {exc}", code=1) from None
+    except SgbmRangeError as exc:
+        raise UsageError(f"stereo: --num-disparities {args.num_disparities}: {exc}",
+                         code=1) from None
     except (ValueError, yaml.YAMLError) as exc:
         raise UsageError(f"stereo: {_input_problem(args, exc)}", code=1) from None
     except cv2.error as exc:  # e.g. more disparities than the image is wide
@@ -171,7 +176,11 @@ def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int
 
 def _input_problem(args: argparse.Namespace, exc: Exception) -> str:
     """One line for a damaged input (a recording's frames.jsonl or calibration YAML)."""
+    from cgamap.drivers.stereo_calib import CalibrationFileError
+
     where = f"--device {args.device}: " if args.device else ""
+    if isinstance(exc, CalibrationFileError):   # names the file and the problem
+        return f"{where}{exc}"
     if isinstance(exc, json.JSONDecodeError):
         return f"{where}frames.jsonl is damaged (line {exc.lineno}: {exc.msg})"
     if isinstance(exc, UnicodeDecodeError):

@@ -32,6 +32,10 @@ from pathlib import Path
 import numpy as np
 
 
+class CalibrationFileError(ValueError):
+    """A calibration file that cannot be read or parsed; the message names the file."""
+
+
 @dataclass
 class StereoCalibration:
     """A stereo pair's calibration; rectified intrinsics are derived on demand."""
@@ -170,8 +174,8 @@ def load_calibration(path: str | Path) -> StereoCalibration:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise ValueError(f"stereo calibration {path}: not a YAML text file (binary data at "
-                         f"byte {exc.start})") from None
+        raise CalibrationFileError(f"stereo calibration {path}: not a YAML text file (binary "
+                                   f"data at byte {exc.start})") from None
     if text.lstrip().startswith("%YAML:1.0"):
         import cv2
 
@@ -179,8 +183,8 @@ def load_calibration(path: str | Path) -> StereoCalibration:
             data = _read_filestorage(path)
         except (cv2.error, SystemError) as exc:   # SystemError: cv2's parse error surfacing
             why = str(exc.__cause__ or exc).strip().splitlines()[-1]
-            raise ValueError(f"stereo calibration {path}: OpenCV cannot parse it ({why})") \
-                from None
+            raise CalibrationFileError(f"stereo calibration {path}: OpenCV cannot parse it "
+                                       f"({why})") from None
     else:
         try:
             data = yaml.safe_load(text)
@@ -188,8 +192,8 @@ def load_calibration(path: str | Path) -> StereoCalibration:
             mark = getattr(exc, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
             what = getattr(exc, "problem", None) or type(exc).__name__
-            raise ValueError(f"stereo calibration {path}: YAML syntax error{where}: "
-                             f"{what}") from None
+            raise CalibrationFileError(f"stereo calibration {path}: calibration YAML syntax "
+                                       f"error{where}: {what}") from None
     if not isinstance(data, dict):
         raise ValueError(f"stereo calibration {path}: expected a mapping of fields")
     try:
@@ -197,7 +201,7 @@ def load_calibration(path: str | Path) -> StereoCalibration:
     except ValueError as exc:
         if str(path) in str(exc):
             raise
-        raise ValueError(f"stereo calibration {path}: {exc}") from None
+        raise CalibrationFileError(f"stereo calibration {path}: {exc}") from None
 
 
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:

@@ -79,12 +79,16 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     return img
 
 
+class SgbmRangeError(ValueError):
+    """The disparity search range does not fit the image width."""
+
+
 def check_width(params: SgbmParams, width: int) -> None:
     """Refuse a search range as wide as the image: OpenCV then computes a negative buffer size
     and fails with "Failed to allocate 18446744073... bytes" instead of saying why."""
     reach = params.num_disparities + max(params.min_disparity, 0)
     if width <= reach:
-        raise ValueError(f"sgbm: num_disparities {params.num_disparities} (+ min_disparity "
+        raise SgbmRangeError(f"sgbm: num_disparities {params.num_disparities} (+ min_disparity "
                          f"{params.min_disparity}) needs images wider than {reach} px, got "
                          f"{width} px; lower num_disparities")
 
