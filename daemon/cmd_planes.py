@@ -6,6 +6,12 @@
 Planes are printed largest first, in the cloud's own frame (for a stereo pair: the left
 camera's optical frame). With ``--json`` the output is one object
 ``{"planes": [{"normal": [x, y, z], "rho": m, "inliers": n, ...}, ...]}``.
+
+Depth cameras: their error grows with range squared, and an RGB-D camera reports depth in
+steps (a Kinect: ~7 cm at 5 m). A fixed inlier band would slice one far wall into a stack of
+fake planes, one per step. So the band widens by --range-noise * range^2; without the flag it
+is 0.003 for a stereo pair and for an organised (width x height) cloud or one whose depth is
+quantised (a depth camera in its own frame), else 0 (laser scans, merged maps).
 """
 
 from __future__ import annotations
@@ -34,8 +40,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--threshold", type=float, default=0.02, help="inlier distance, m")
     p.add_argument("--range-noise", type=float, default=None,
-                   help="extra threshold per squared range, 1/m (default: 0 for files, "
-                        "0.003 for stereo)")
+                   help="extra threshold per squared range, 1/m (default: 0.003 for stereo "
+                        "and for organised or depth-quantised clouds (a depth camera), else 0)")
     p.add_argument("--min-inliers", type=int, default=1000)
     p.add_argument("--normal-tol", type=float, default=0.0, metavar="DEG",
                    help="RANSAC: a point supports a plane only if its local normal is within "
@@ -136,7 +142,7 @@ def run(args) -> int:
 
 def _run(args) -> int:
     from cgamap.mapping.pcd import finite_points
-    from cgamap.mapping.planes import PlaneParams, detect_planes
+    from cgamap.mapping.planes import PlaneParams, detect_planes, range_noise_for
 
     _positive("--threshold", args.threshold)
     _positive("--min-inliers", args.min_inliers)
@@ -155,7 +161,7 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     if args.cloud:
         cloud = _load_cloud(args.cloud)
-        range_noise = 0.0 if args.range_noise is None else args.range_noise
+        range_noise = range_noise_for(cloud) if args.range_noise is None else args.range_noise
         source = f"--cloud {args.cloud}"
     else:
         cloud = _stereo_points(args.stereo[0], args.stereo[1], args.calib, args.max_depth)
@@ -180,14 +186,16 @@ def _run(args) -> int:
     _exports(args, planes)
     if args.json:
         out = {"planes": [p.to_dict() for p in planes], "points": int(len(pts)),
-               "method": args.method,
+               "method": args.method, "range_noise": range_noise,
                "seconds": {"load": round(t1 - t0, 4), "detect": round(t2 - t1, 4)}}
         if args.configurations:
             out["configurations"] = [c.to_dict() for c in configs]
         json.dump(out, sys.stdout)
         sys.stdout.write("\n")
         return 0
-    print(f"{len(planes)} planes in {len(pts)} points ({args.method}, {1000 * (t2 - t1):.0f} ms)")
+    band = f", band {args.threshold:g} m + {range_noise:g} r^2" if range_noise else ""
+    print(f"{len(planes)} planes in {len(pts)} points ({args.method}{band}, "
+          f"{1000 * (t2 - t1):.0f} ms)")
     for i, p in enumerate(planes):
         t, ph, r = p.hough
         n = p.normal

@@ -135,3 +135,44 @@ def test_venus_sgbm_disparity_recovers_the_ground_truth_planes(shared_data):
         pred = (p.rho - flat[pix, :2] @ p.normal[:2]) / p.normal[2]
         assert np.median(np.abs(pred - flat[pix, 2])) < 0.25
         assert any(normal_angle_deg(p.normal, g.normal) < 1.0 for g in gt[:5])
+
+
+def _slices(planes: list[tuple[np.ndarray, float]]) -> list[tuple[int, int]]:
+    """Pairs of parallel planes (< 1 deg) a depth step apart (< 0.12 m): one surface cut into
+    the depth camera's quantisation levels."""
+    return [(i, j) for i in range(len(planes)) for j in range(i + 1, len(planes))
+            if (lambda e: e[0] < 1.0 and e[1] < 0.12)(plane_error(*planes[i], *planes[j]))]
+
+
+def test_office1_reference_is_not_depth_slices(office, office_reference):
+    """The careful reference must not be fooled by the Kinect's depth steps (7 cm at 5 m): its
+    largest plane (the door wall) spans several of them, and no two of its planes are
+    parallel slices of one surface."""
+    assert not _slices([(n, r) for n, r, _ in office_reference])
+    n, r, _ = office_reference[0]
+    band = OFFICE.threshold + OFFICE.range_noise * np.einsum("ij,ij->i", office, office)
+    levels, counts = np.unique(office[np.abs(office @ n - r) < band, 2], return_counts=True)
+    # several well-populated steps, not one exact z level
+    assert (counts > 0.1 * counts.sum()).sum() >= 2 and abs(n[2]) < 0.99999
+
+
+@pytest.mark.parametrize("method", ["ransac", "hough"])
+def test_cli_defaults_give_the_door_wall_as_one_plane(office_reference, method, capsys):
+    """QA: `cgamap planes --cloud office1.pcd` (fixed 2 cm band) returned the door wall as
+    four planes n = (0, 0, 1), rms 0, at the depth steps 4.906 ... 5.125 m.  The organised
+    cloud now gets the range-dependent band by default."""
+    import json
+
+    from cgamap.daemon.cli import main
+
+    path = require_data("clouds/office1.pcd")
+    assert main(["planes", "--cloud", str(path), "--method", method, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["range_noise"] == pytest.approx(0.003)
+    planes = [(np.array(p["normal"]), p["rho"]) for p in out["planes"]]
+    assert all(p["rms"] > 0.001 for p in out["planes"])
+    assert not _slices(planes)
+    wall_n, wall_r, _ = office_reference[0]
+    close = [p for p in planes if (lambda e: e[0] < 1.0 and e[1] < 0.02)(
+        plane_error(*p, wall_n, wall_r))]
+    assert len(close) == 1
