@@ -77,7 +77,11 @@ class LoopParams:
 @dataclass
 class MapperParams:
     segments: SegmentParams = field(default_factory=SegmentParams)
-    correction: CorrectionParams = field(default_factory=CorrectionParams)
+    # one gate tighter than the correction's default (0.06 m, 2.5 deg): the last pass
+    # leaves clutter and the neighbouring wall out of a scan-to-map step
+    correction: CorrectionParams = field(default_factory=lambda: CorrectionParams(
+        gates=(0.4, 0.25, 0.15, 0.1, 0.08, 0.06),
+        angle_gates_deg=(15.0, 9.0, 5.0, 4.0, 3.0, 2.5)))
     map: MapParams = field(default_factory=MapParams)
     loop: LoopParams = field(default_factory=LoopParams)
     reloc: RelocParams = field(default_factory=lambda: RelocParams(
