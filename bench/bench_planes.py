@@ -3,7 +3,9 @@
 - synthetic: 1e5 points, 3 planes, 20% outliers, 1 cm noise -> worst angle (deg) and Hesse
   distance (mm) errors and times for RANSAC (target <= 50 ms) and Hough (<= 150 ms);
 - office1.pcd (PCL test data, 254,456 points): the 5 largest planes' time (<= 200 ms) and
-  their errors against a slow careful reference fit;
+  their errors against a slow careful reference fit; and what ``cgamap planes --cloud``'s
+  defaults find (the band each cloud gets from ``range_noise_for``): how many planes are
+  depth-step slices (rms < 1 mm, QA finding: four at 4.906 ... 5.125 m with a fixed band);
 - Open3D's segment_plane side by side, only when open3d happens to be importable.
 Times are the median of several runs (the machine is shared).
 """
@@ -18,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from cgamap.mapping import plane_scenes as scenes
 from cgamap.mapping.pcd import finite_points, read_pcd
-from cgamap.mapping.planes import PlaneParams, detect_planes, plane_error
+from cgamap.mapping.planes import PlaneParams, detect_planes, plane_error, range_noise_for
 
 SYNTH = PlaneParams(threshold=0.03, min_inliers=2000)
 OFFICE = PlaneParams(threshold=0.015, range_noise=0.003, min_inliers=3000, max_planes=5)
@@ -119,6 +121,18 @@ def run() -> dict:
                 "max_angle_deg": round(max((e[0] for e in errs), default=90.0), 4),
                 "max_rho_mm": round(1000 * max((e[1] for e in errs), default=1.0), 2),
                 "inliers": [p.inliers for p in planes]}
+        organised = read_pcd(office)
+        cli = PlaneParams(threshold=0.02, range_noise=range_noise_for(organised),
+                          min_inliers=1000)   # `cgamap planes --cloud` defaults
+        for method in ("ransac", "hough"):
+            planes = detect_planes(cloud, method, cli)
+            wall = [p for p in planes if (lambda e: e[0] < 1.0 and e[1] < 0.02)(
+                plane_error(p.normal, p.rho, *ref[0]))]
+            res[f"office1_cli_defaults_{method}"] = {
+                "range_noise": cli.range_noise, "planes": len(planes),
+                "slices_rms_below_1mm": sum(p.rms < 0.001 for p in planes),
+                "door_wall_planes": len(wall),
+                "door_wall_inliers": [p.inliers for p in wall]}
     else:
         res["office1"] = f"not found: {office}"
     return res
