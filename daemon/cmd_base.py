@@ -28,9 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import signal
-import sys
 import time
 
 from cgamap.daemon.cli import UsageError
@@ -150,8 +148,6 @@ def run_odom(args: argparse.Namespace) -> int:
                 break
     except ModbusBaseError as exc:
         raise UsageError(f"odom: {exc}", 1) from None
-    except BrokenPipeError:
-        return _stdout_closed()
     finally:
         try:
             if drive is not None:
@@ -165,15 +161,6 @@ def run_odom(args: argparse.Namespace) -> int:
 
 def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
-
-
-def _stdout_closed() -> int:
-    """The reader of our output went away (``| head``): stop quietly, exit 0.  stdout is
-    pointed at /dev/null so the interpreter's final flush does not fail again."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-    os.close(devnull)
-    return 0
 
 
 def _positive_finite(cmd: str, flag: str, value: float) -> None:
@@ -295,10 +282,7 @@ def run_pantilt(args: argparse.Namespace) -> int:
     finally:
         head.close()
     hw = {"pan": st.hardware_error & 0xFF, "tilt": st.hardware_error >> 8}
-    try:
-        _print_state(args, st, hw, head.models, describe_hw_error)
-    except BrokenPipeError:
-        _stdout_closed()
+    _print_state(args, st, hw, head.models, describe_hw_error)
     return 0 if not st.hardware_error else 3
 
 

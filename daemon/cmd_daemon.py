@@ -208,8 +208,6 @@ def run_watch(args: argparse.Namespace) -> int:
                 break
     except DaemonUnavailable as exc:
         raise UsageError(f"watch: {exc}", code=69) from None
-    except BrokenPipeError:
-        pass
     except TimeoutError:
         raise UsageError(f"watch: {where}: nothing from the daemon for {quiet:g} s", 69) \
             from None

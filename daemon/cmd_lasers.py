@@ -117,9 +117,6 @@ def run(args: argparse.Namespace) -> int:
             line = json.dumps(scan.to_json()) if args.json else summary(scan)
             print(line, flush=True)
             n += 1
-    except BrokenPipeError:  # e.g. piped into head
-        sys.stderr.close()
-        return 0
     except (TransportError, DeviceError) as exc:
         raise UsageError(f"--device {args.device}: {exc}", 1) from None
     finally:

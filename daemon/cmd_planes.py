@@ -134,13 +134,6 @@ def _stereo_points(left: str, right: str, calib: str | None, max_depth: float) -
 
 
 def run(args) -> int:
-    try:
-        return _run(args)
-    except BrokenPipeError:  # our stdout's reader went away (| head)
-        return _stdout_closed()
-
-
-def _run(args) -> int:
     from cgamap.mapping.pcd import finite_points
     from cgamap.mapping.planes import PlaneParams, detect_planes, range_noise_for
 
@@ -238,10 +231,3 @@ def _as_map_plane(p):
     return MapPlane(p.normal, p.rho, p.extent, inliers=p.inliers, corners=p.corners)
 
 
-def _stdout_closed() -> int:
-    """The reader of our output went away (``| head``): stop quietly, exit 0.  stdout is
-    pointed at /dev/null so the interpreter's final flush does not fail again."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-    os.close(devnull)
-    return 0

@@ -160,8 +160,8 @@ def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int
         raise UsageError(f"stereo: OpenCV refused the frame: {exc.err or exc} (check "
                          "--num-disparities and --block-size against the image size)",
                          code=1) from None
-    except BrokenPipeError:  # our stdout's reader went away
-        return _stdout_closed()
+    except BrokenPipeError:  # stdout's reader went away: cgamap's main ends quietly
+        raise
     except OSError as exc:  # e.g. the disk filled up while writing
         raise UsageError(f"stereo: --out {args.out}: cannot write ({exc.strerror or exc})",
                          code=1) from None
@@ -192,10 +192,3 @@ def _input_problem(args: argparse.Namespace, exc: Exception) -> str:
     return str(exc)
 
 
-def _stdout_closed() -> int:
-    """The reader of our output went away (``| head``): stop quietly, exit 0.  stdout is
-    pointed at /dev/null so the interpreter's final flush does not fail again."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-    os.close(devnull)
-    return 0
