@@ -60,8 +60,9 @@ class RelocParams:
     crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
     crossing_step: float = 0.08       # free-space samples along each beam (m)
     map_share: float = 0.5            # a map line pairs with a scan line at least this long
-    sweep_cells: int = 10             # best cells of a correlative sweep per rotation (0: off)
+    sweep_cells: int = 20             # best cells of a correlative sweep per rotation (0: off)
     sweep_grid: float = 0.25          # cell of the sweep (m)
+    sweep_points: int = 20            # scan points correlated by the sweep
 
 
 @dataclass
@@ -304,6 +305,8 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
     thr = P.coarse_dist + 0.71 * step * field.res
     pad, mask = field.padded_mask(thr)
     ny, nx = (np.array(field.dist.shape) + step - 1) // step
+    if len(pts) > P.sweep_points:
+        pts = pts[np.linspace(0, len(pts) - 1, P.sweep_points).astype(int)]
     out_T, out_R = [], []
     for th in rots:  # a dozen rotations, each a sum of one slice per point
         c, s = np.cos(th), np.sin(th)

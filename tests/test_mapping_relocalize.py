@@ -8,7 +8,7 @@ import pytest
 from cgamap.drivers.sim.world import get_world
 from cgamap.mapping.linemap import LineMap, integrate
 from cgamap.mapping.posegraph import wrap
-from cgamap.mapping.relocalize import DistanceField, relocalize
+from cgamap.mapping.relocalize import DistanceField, RelocParams, relocalize
 from cgamap.mapping.segments import segments_from_scan
 from synth2d import scan, world
 
@@ -56,8 +56,10 @@ def test_symmetric_room_gives_ranked_hypotheses():
     p = np.array([1.0, 0.5, 0.3])
     r = relocalize(m, segments_from_scan(scan(w, p, n=720, fov=2 * np.pi)))
     assert r.found and len(r.hypotheses) >= 2
-    scores = [h.score for h in r.hypotheses]
-    assert scores == sorted(scores, reverse=True)
+    # ranked by the soft fit (RelocParams.fit_weight), the inlier count breaking ties
+    fw = RelocParams().fit_weight
+    keys = [h.score + fw * h.fit for h in r.hypotheses]
+    assert keys == sorted(keys, reverse=True)
     # the point-symmetric pose explains the scan as well as the true one
     mirrored = np.array([-1.0, -0.5, wrap(0.3 + np.pi)])
     near = [h for h in r.hypotheses if h.score > 0.95]
@@ -74,3 +76,18 @@ def test_unrelated_scan_is_not_found(loop_world):
     r = relocalize(m, segments_from_scan(scan(other, (0.0, 0.0, 0.4), n=360,
                                               fov=2 * np.pi)))
     assert not r.found and r.pose is None
+
+
+def test_sweep_proposes_the_true_cell():
+    # an L-shaped room: the correlative sweep alone, at the true rotation, has a cell
+    # within half a diagonal of the true position among its best
+    from cgamap.mapping.relocalize import _sweep
+    w = world([(-4, -2, 4, -2), (4, -2, 4, 0), (4, 0, 0, 0), (0, 0, 0, 3), (0, 3, -4, 3),
+               (-4, 3, -4, -2)])
+    m = _map_of(w, [(0.0, 0.0, 0.0), (-2.0, 1.0, 0.0)])
+    p = np.array([-1.2, -0.7, 0.4])
+    seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
+    P = RelocParams()
+    T, R = _sweep(DistanceField(m, P.field_resolution), seg.points, np.array([p[2]]), P)
+    assert len(T) == P.sweep_cells and np.allclose(R, p[2])
+    assert np.min(np.hypot(*(T - p[:2]).T)) <= 0.71 * P.sweep_grid + 0.05
