@@ -110,6 +110,16 @@ def _overlap(a: tuple[float, float], b: tuple[float, float]) -> float:
 # ---- corridor ------------------------------------------------------------------------------
 
 
+def _parallel_wall_pairs(view: _View, walls: np.ndarray):
+    """Pairs (i, j) of parallel walls with wall i's normal n and wall j written as n.x = dj."""
+    for a in range(len(walls)):
+        for b in range(a + 1, len(walls)):
+            i, j = int(walls[a]), int(walls[b])
+            if view.parallel(i, j):
+                n = view.n[i]
+                yield i, j, n, float(view.rho[j] * np.sign(n @ view.n[j]))
+
+
 def find_corridors(view: _View) -> list[Configuration]:
     """Two parallel vertical planes 0.8-4 m apart, facing each other over a floor; the axis is
     the meet of the floor with the walls' mid-plane."""
@@ -119,34 +129,28 @@ def find_corridors(view: _View) -> list[Configuration]:
         return []
     walls = np.flatnonzero(view.is_vertical & (view.area >= r.min_wall_area))
     out = []
-    for a in range(len(walls)):
-        for b in range(a + 1, len(walls)):
-            i, j = int(walls[a]), int(walls[b])
-            if not view.parallel(i, j):
-                continue
-            n = view.n[i]
-            di = float(view.rho[i])
-            dj = float(view.rho[j] * np.sign(n @ view.n[j]))  # wall j as n.x = dj
-            width = abs(di - dj)
-            if not r.corridor_width[0] <= width <= r.corridor_width[1]:
-                continue
-            along = np.cross(n, view.up)
-            along /= np.linalg.norm(along)
-            if _overlap(view.span(i, along), view.span(j, along)) <= 0:
-                continue  # the walls must face each other along the corridor
-            lo, hi = sorted((di, dj))
-            f_lo, f_hi = view.span(floor, n)
-            if _overlap((f_lo, f_hi), (lo, hi)) < 0.5 * width:
-                continue  # the floor lies between the walls
-            mid = plane_from_hesse(n, 0.5 * (di + dj))
-            axis = meet(view.cga[floor], mid)
-            p, d = line_point_direction(axis)
-            out.append(Configuration(
-                "corridor", [i, j, floor],
-                {"wall_a": view.cga[i], "wall_b": view.cga[j], "floor": view.cga[floor],
-                 "mid_plane": mid, "axis": axis},
-                {"width": width, "axis_point": p.tolist(), "axis_direction": d.tolist(),
-                 "length": _overlap(view.span(i, along), view.span(j, along))}))
+    for i, j, n, dj in _parallel_wall_pairs(view, walls):
+        di = float(view.rho[i])
+        width = abs(di - dj)
+        if not r.corridor_width[0] <= width <= r.corridor_width[1]:
+            continue
+        along = np.cross(n, view.up)
+        along /= np.linalg.norm(along)
+        if _overlap(view.span(i, along), view.span(j, along)) <= 0:
+            continue  # the walls must face each other along the corridor
+        lo, hi = sorted((di, dj))
+        f_lo, f_hi = view.span(floor, n)
+        if _overlap((f_lo, f_hi), (lo, hi)) < 0.5 * width:
+            continue  # the floor lies between the walls
+        mid = plane_from_hesse(n, 0.5 * (di + dj))
+        axis = meet(view.cga[floor], mid)
+        p, d = line_point_direction(axis)
+        out.append(Configuration(
+            "corridor", [i, j, floor],
+            {"wall_a": view.cga[i], "wall_b": view.cga[j], "floor": view.cga[floor],
+             "mid_plane": mid, "axis": axis},
+            {"width": width, "axis_point": p.tolist(), "axis_direction": d.tolist(),
+             "length": _overlap(view.span(i, along), view.span(j, along))}))
     return out
 
 
@@ -222,35 +226,29 @@ def find_doorways(view: _View) -> list[Configuration]:
     floor_h = float(view.height[floor]) if floor is not None else float(
         min((view.span(int(k), view.up)[0] for k in walls), default=0.0))
     out = []
-    for a in range(len(walls)):
-        for b in range(a + 1, len(walls)):
-            i, j = int(walls[a]), int(walls[b])
-            if not view.parallel(i, j):
-                continue
-            n = view.n[i]
-            dj = float(view.rho[j] * np.sign(n @ view.n[j]))
-            if abs(view.rho[i] - dj) > r.coplanar_rho_tol:
-                continue
-            along = np.cross(view.up, n)
-            along /= np.linalg.norm(along)
-            si, sj = view.span(i, along), view.span(j, along)
-            (l_lo, l_hi), (r_lo, r_hi) = sorted((si, sj))
-            gap = r_lo - l_hi
-            if not r.door_width[0] <= gap <= r.door_width[1]:
-                continue
-            wall_plane = plane_from_hesse(n, 0.5 * (view.rho[i] + dj))
-            base = n * (0.5 * (view.rho[i] + dj))
-            base = base - np.dot(base, along) * along - np.dot(base, view.up) * view.up
-            left = base + l_hi * along + floor_h * view.up
-            right = base + r_lo * along + floor_h * view.up
-            centre = 0.5 * (left + right)
-            top = min(view.span(i, view.up)[1], view.span(j, view.up)[1])
-            out.append(Configuration(
-                "doorway", [i, j] + ([floor] if floor is not None else []),
-                {"wall": wall_plane, "gap": point_pair(left, right),
-                 "centre_line": line(centre, centre + view.up)},
-                {"width": float(gap), "centre": centre.tolist(),
-                 "height": float(top - floor_h)}))
+    for i, j, n, dj in _parallel_wall_pairs(view, walls):
+        if abs(view.rho[i] - dj) > r.coplanar_rho_tol:
+            continue
+        along = np.cross(view.up, n)
+        along /= np.linalg.norm(along)
+        si, sj = view.span(i, along), view.span(j, along)
+        (l_lo, l_hi), (r_lo, r_hi) = sorted((si, sj))
+        gap = r_lo - l_hi
+        if not r.door_width[0] <= gap <= r.door_width[1]:
+            continue
+        wall_plane = plane_from_hesse(n, 0.5 * (view.rho[i] + dj))
+        base = n * (0.5 * (view.rho[i] + dj))
+        base = base - np.dot(base, along) * along - np.dot(base, view.up) * view.up
+        left = base + l_hi * along + floor_h * view.up
+        right = base + r_lo * along + floor_h * view.up
+        centre = 0.5 * (left + right)
+        top = min(view.span(i, view.up)[1], view.span(j, view.up)[1])
+        out.append(Configuration(
+            "doorway", [i, j] + ([floor] if floor is not None else []),
+            {"wall": wall_plane, "gap": point_pair(left, right),
+             "centre_line": line(centre, centre + view.up)},
+            {"width": float(gap), "centre": centre.tolist(),
+             "height": float(top - floor_h)}))
     return out
 
 
