@@ -16,6 +16,7 @@ from cgamap.cga import (
     apply_points,
     camera_chain,
     motor_from_pose,
+    motor_to_matrix,
     rotor,
     translator,
 )
@@ -117,8 +118,6 @@ def camera_motor(pose: tuple[float, float, float] | Multivector = (0.0, 0.0, 0.0
     """
     mount = mount or CameraMount()
     if isinstance(pose, Multivector):
-        from cgamap.cga import motor_to_matrix
-
         H = motor_to_matrix(pose)
         T_pos = translator(H[:3, 3])
         R_pos = motor_from_pose(np.zeros(3), H[:3, :3])
