@@ -365,8 +365,6 @@ e0 = 0.5 * (em - ep)
 einf = em + ep
 I = _basis(0b11111)
 I_INV = I.inverse()
-E0_INF = e0 ^ einf  # the Minkowski plane (= e+ e- here)
-I3 = _basis(0b00111)
 
 
 def blade_index(name: str) -> int:

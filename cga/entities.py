@@ -146,7 +146,7 @@ def line_direction_moment(L: Multivector) -> tuple[np.ndarray, np.ndarray]:
     For L = up(a) ^ up(b) ^ einf: d = b - a (unnormalised, keeps the line's weight) and the
     moment of a ^ b; read off the e_i ^ E and e_ij ^ einf parts, E = e0 ^ einf.
     """
-    # Left contraction with E isolates the direction: (L . E) ~ d up to sign; use components.
+    # L = (a ^ b) ^ einf + (a - b) ^ e0 ^ einf and e0 ^ einf = -e+-: d_i is the e_i+- part.
     d = np.stack([L.v[..., blade_index(f"e{i}+-")] for i in (1, 2, 3)], axis=-1)
     # a ^ b ^ einf puts m_ij on both e_ij+ and e_ij- with the same coefficient.
     m12 = L.v[..., blade_index("e12+")]
