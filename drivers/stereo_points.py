@@ -21,6 +21,7 @@ from cgamap.cga import (
     translator,
 )
 
+from .pantilt import pan_tilt_rotors
 from .stereo_calib import StereoCalibration
 
 # Fixed rotation from the head frame (x forward, y left, z up) to the optical frame
@@ -125,8 +126,7 @@ def camera_motor(pose: tuple[float, float, float] | Multivector = (0.0, 0.0, 0.0
         x, y, th = (float(v) for v in pose)
         T_pos = translator(np.array([x, y, 0.0]))
         R_pos = rotor(np.array([0.0, 0.0, 1.0]), th)
-    R_pan = rotor(np.array([0.0, 0.0, 1.0]), pan)
-    R_tilt = rotor(np.array([0.0, 1.0, 0.0]), tilt)
+    R_pan, R_tilt = pan_tilt_rotors(pan, tilt)
     R_eye = motor_from_pose(np.zeros(3), mount.rotation)
     return camera_chain(T_pos, R_pos, R_pan, R_tilt, np.asarray(mount.t_axis, dtype=float),
                         np.asarray(mount.t_eye, dtype=float), R_eye=R_eye)
