@@ -15,6 +15,7 @@ import numpy as np
 
 from .evaluation import align_rigid_2d, apply_pose, ate, rpe
 from .linemap import LineMap
+from .odometry import wrap_angle
 from .relocalize import DistanceField, RelocParams, relocalize
 from .segments import SegmentParams, extract_segments
 from .slam2d import Mapper, MapperParams
@@ -107,7 +108,7 @@ def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0
             pose = res.pose if alignment is None else apply_pose(alignment, res.pose[None])[0]
             d = pose - truth[int(i)]
             et = float(np.hypot(d[0], d[1]))
-            er = float(abs((d[2] + np.pi) % (2 * np.pi) - np.pi))
+            er = float(abs(wrap_angle(d[2])))
             if et <= max_trans and np.degrees(er) <= max_rot_deg:
                 errs_t.append(et)
                 errs_r.append(np.degrees(er))

@@ -17,9 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
-
-def wrap(a) -> np.ndarray:
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+from .odometry import wrap_angle as wrap
 
 
 def relative(pi: np.ndarray, pj: np.ndarray) -> np.ndarray:

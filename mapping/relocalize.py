@@ -34,6 +34,7 @@ import numpy as np
 from .correction import CorrectionParams, correct_pose
 from .linemap import LineMap
 from .matching import LineIndex, line_normals
+from .odometry import wrap_angle as _wrap
 from .segments import Segments
 
 
@@ -117,10 +118,6 @@ class DistanceField:
         qx = np.clip(q[..., 0], 0, self.size[0] - 1)
         qy = np.clip(q[..., 1], 0, self.size[1] - 1)
         return np.where(ok, self.dist[qy, qx], self.far)
-
-
-def _wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def _rotation_hypotheses(phi_g, len_g, phi_l, len_l, P: RelocParams) -> np.ndarray:

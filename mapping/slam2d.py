@@ -28,17 +28,10 @@ from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_pose
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
+from .odometry import compose_pose2d as compose
 from .posegraph import PoseGraph, relative, wrap
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize
 from .segments import SegmentParams, Segments, extract_segments
-
-
-def compose(p, inc) -> np.ndarray:
-    """Pose p followed by the increment inc (given in p's frame)."""
-    p, inc = np.asarray(p, float), np.asarray(inc, float)
-    c, s = np.cos(p[2]), np.sin(p[2])
-    return np.array([p[0] + c * inc[0] - s * inc[1], p[1] + s * inc[0] + c * inc[1],
-                     float(wrap(p[2] + inc[2]))])
 
 
 def invert(p) -> np.ndarray:
