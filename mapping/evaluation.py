@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from cgamap.cga import angle_diff
 
+from .odometry import relative
+
 
 def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
     """(x, y, theta) of the rigid motion that best maps est positions onto ref (Kabsch)."""
@@ -38,13 +40,6 @@ def ate(est: np.ndarray, ref: np.ndarray) -> dict:
             "ate_trans_max_m": float(dt.max())}
 
 
-def _relative(p: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    d = p[j, :2] - p[i, :2]
-    c, s = np.cos(p[i, 2]), np.sin(p[i, 2])
-    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1],
-                            angle_diff(p[j, 2], p[i, 2])])
-
-
 def rpe(est: np.ndarray, ref: np.ndarray, distance: float = 1.0) -> dict:
     """Relative pose error over ``distance`` metres of (reference) travel: RMS of the
     difference between estimated and reference relative motions."""
@@ -56,7 +51,7 @@ def rpe(est: np.ndarray, ref: np.ndarray, distance: float = 1.0) -> dict:
     i, j = i[ok], j[ok]
     if not len(i):
         return {"rpe_trans_m": float("nan"), "rpe_rot_deg": float("nan"), "rpe_pairs": 0}
-    re, rr = _relative(est, i, j), _relative(ref, i, j)
+    re, rr = relative(est[i], est[j]), relative(ref[i], ref[j])
     dt = np.linalg.norm(re[:, :2] - rr[:, :2], axis=-1)
     dr = angle_diff(re[:, 2], rr[:, 2])
     return {"rpe_trans_m": float(np.sqrt(np.mean(dt ** 2))),

@@ -143,14 +143,21 @@ def integrate_increments(increments, start=(0.0, 0.0, 0.0)) -> np.ndarray:
     return np.concatenate([xy, wrap_angle(th)[:, None]], axis=-1)
 
 
+def relative(pi, pj) -> np.ndarray:
+    """(..., 3) motion from pose pi to pose pj, in pi's frame (inverse of
+    :func:`compose_pose2d`: ``compose_pose2d(pi, relative(pi, pj)) == pj``)."""
+    pi, pj = np.asarray(pi, float), np.asarray(pj, float)
+    d = pj[..., :2] - pi[..., :2]
+    c, s = np.cos(pi[..., 2]), np.sin(pi[..., 2])
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
+                     wrap_angle(pj[..., 2] - pi[..., 2])], axis=-1)
+
+
 def pose_increments(poses) -> np.ndarray:
     """(n, 3) poses -> (n - 1, 3) increments, each in the frame of the earlier pose
     (inverse of :func:`integrate_increments`)."""
     p = np.asarray(poses, dtype=float).reshape(-1, 3)
-    d = p[1:, :2] - p[:-1, :2]
-    c, s = np.cos(p[:-1, 2]), np.sin(p[:-1, 2])
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1],
-                     wrap_angle(p[1:, 2] - p[:-1, 2])], axis=-1)
+    return relative(p[:-1], p[1:])
 
 
 # The planar pose's motor is the core's closed form (one pose or a batch, microseconds).

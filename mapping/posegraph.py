@@ -17,15 +17,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
+from .odometry import relative
 from .odometry import wrap_angle as wrap
-
-
-def relative(pi: np.ndarray, pj: np.ndarray) -> np.ndarray:
-    """(..., 3) motion from pose i to pose j, in i's frame."""
-    d = pj[..., :2] - pi[..., :2]
-    c, s = np.cos(pi[..., 2]), np.sin(pi[..., 2])
-    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
-                     wrap(pj[..., 2] - pi[..., 2])], axis=-1)
 
 
 @dataclass

@@ -29,7 +29,9 @@ from .correction import Correction, CorrectionParams, correct_pose
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
 from .odometry import compose_pose2d as compose
-from .posegraph import PoseGraph, relative, wrap
+from .odometry import relative
+from .odometry import wrap_angle as wrap
+from .posegraph import PoseGraph
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize
 from .segments import SegmentParams, Segments, extract_segments
 
