@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from cgamap.cga import angle_diff
 
-from .odometry import relative
+from .odometry import compose_pose2d, relative
 
 
 def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
@@ -20,13 +20,8 @@ def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> tuple[float, float, floa
 
 
 def apply_pose(T, poses: np.ndarray) -> np.ndarray:
-    x, y, th = T
-    c, s = np.cos(th), np.sin(th)
-    out = np.empty_like(poses, dtype=float)
-    out[:, 0] = c * poses[:, 0] - s * poses[:, 1] + x
-    out[:, 1] = s * poses[:, 0] + c * poses[:, 1] + y
-    out[:, 2] = angle_diff(poses[:, 2] + th, 0.0)
-    return out
+    """(n, 3) poses moved by the rigid motion T = (x, y, theta): T composed with each."""
+    return compose_pose2d(T, poses)
 
 
 def ate(est: np.ndarray, ref: np.ndarray) -> dict:
