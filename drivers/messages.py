@@ -57,13 +57,6 @@ class LaserScan:
     def angles(self) -> np.ndarray:
         return self.angle_min + self.angle_increment * np.arange(len(self.ranges))
 
-    def points(self) -> np.ndarray:
-        """(n, 2) Cartesian points of the valid beams, in the laser frame."""
-        a = self.angles
-        ok = np.isfinite(self.ranges)
-        r = self.ranges[ok]
-        return np.stack([r * np.cos(a[ok]), r * np.sin(a[ok])], axis=-1)
-
     def to_json(self) -> dict:
         def num(x):
             return None if not np.isfinite(x) else round(float(x), 4)
