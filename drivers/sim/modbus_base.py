@@ -161,12 +161,6 @@ class ModbusBaseTwin:
             self.config.loop_script = loop
             self._script_t0 = self._t_sim
 
-    def set_speeds(self, left: float, right: float) -> None:
-        """Command wheel speeds directly (as the set-point registers do)."""
-        with self._lock:
-            self._advance()
-            self._cmd = [float(left), float(right)]
-
     def set_estop(self, on: bool) -> None:
         with self._lock:
             self._estop = bool(on)
