@@ -47,21 +47,11 @@ def _xyz(p: np.ndarray) -> np.ndarray:
     return np.column_stack([p, np.zeros(len(p))])
 
 
-def planar_motor(x: float, y: float, theta: float) -> Multivector:
-    """M = T R of a planar pose: the core's closed form (microseconds per scan)."""
-    return motor_from_pose2d(x, y, theta)
-
-
-def motor_planar_pose(M: Multivector) -> tuple[float, float, float]:
-    """(x, y, theta) of a motor that turns about z: the inverse of :func:`planar_motor`."""
-    x, y, th = motor_to_pose2d(M)
-    return float(x), float(y), float(th)
-
-
 def laser_motor(pose, mount=None) -> Multivector:
-    """M_GL = M_GB M_BL for a planar robot pose (x, y, theta) and a planar mount (or None)."""
-    M_GB = planar_motor(*pose)
-    return M_GB if mount is None else laser_chain(M_GB, planar_motor(*mount))
+    """M_GL = M_GB M_BL for a planar robot pose (x, y, theta) and a planar mount (or None);
+    planar motors are the core's closed form (microseconds per scan)."""
+    M_GB = motor_from_pose2d(*pose)
+    return M_GB if mount is None else laser_chain(M_GB, motor_from_pose2d(*mount))
 
 
 def cga_segments(seg: Segments, M: Multivector | None = None) -> CGASegments:
@@ -101,4 +91,4 @@ def sphere_centre_radius_2d(S: Multivector) -> tuple[np.ndarray, np.ndarray]:
 
 def segments_to_global(seg: Segments, M: Multivector) -> Segments:
     """``seg`` moved into the global frame by the laser chain motor M = M_GB M_BL."""
-    return seg.transformed(*motor_planar_pose(M))
+    return seg.transformed(*(float(v) for v in motor_to_pose2d(M)))

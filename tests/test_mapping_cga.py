@@ -114,12 +114,12 @@ def test_containment_is_a_candidate():
 
 @settings(max_examples=30, deadline=None)
 @given(coord, coord, st.floats(-3.14, 3.14))
-def test_planar_motor_is_the_cga_motor(x, y, th):
-    from cgamap.cga import motor_from_pose2d
-    from cgamap.mapping.cga_segments import motor_planar_pose, planar_motor
+def test_laser_motor_is_the_cga_motor(x, y, th):
+    from cgamap.cga import motor_from_pose2d, motor_to_pose2d
+    from cgamap.mapping.cga_segments import laser_motor
 
-    M = planar_motor(x, y, th)
+    M = laser_motor((x, y, th))
     assert np.allclose(M.v, motor_from_pose2d(x, y, th).v, atol=1e-12)
-    px, py, pth = motor_planar_pose(M)
+    px, py, pth = (float(v) for v in motor_to_pose2d(M))
     assert (px, py) == pytest.approx((x, y), abs=1e-9)
     assert abs(np.angle(np.exp(1j * (pth - th)))) < 1e-9
