@@ -171,11 +171,15 @@ def _rect_tops(world: World) -> list[tuple[float, float, float, float, float]]:
     return out
 
 
-def scene_from_world(world: World, margin: float = 0.5, boxes: bool = True) -> Scene3D:
-    """The 2D world extruded, with a floor under its bounds."""
+def _extruded(world: World, margin: float = 0.5) -> SceneBuilder:
     x0, y0, x1, y1 = world.bounds()
-    b = SceneBuilder().extrude(world).floor(x0 - margin, y0 - margin, x1 + margin, y1 + margin)
-    return b.build(world.name, world)
+    return SceneBuilder().extrude(world).floor(x0 - margin, y0 - margin, x1 + margin,
+                                               y1 + margin)
+
+
+def scene_from_world(world: World, margin: float = 0.5) -> Scene3D:
+    """The 2D world extruded, with a floor under its bounds."""
+    return _extruded(world, margin).build(world.name, world)
 
 
 def _stairs_scene() -> Scene3D:
@@ -194,8 +198,7 @@ def _stairs_scene() -> Scene3D:
 
 def _corridor_boxes() -> Scene3D:
     world = get_world("corridor")
-    x0, y0, x1, y1 = world.bounds()
-    b = SceneBuilder().extrude(world).floor(x0 - 0.5, y0 - 0.5, x1 + 0.5, y1 + 0.5)
+    b = _extruded(world)
     b.box(4.0, 0.4, 0.0, 4.6, 1.0, 0.5).box(15.0, -1.0, 0.0, 15.8, -0.5, 0.8)
     return b.build("corridor-boxes", world)
 
