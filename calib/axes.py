@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from cgamap.cga import Multivector, line_from_point_direction, motor_to_matrix, rotor, translator
 
-from .se3 import inv, so3_log
+from .se3 import inv, make_pose, so3_exp, so3_log
 
 
 class AxisCalibrationError(ValueError):
@@ -78,8 +78,6 @@ class _Params:
             d_new = d + x[o] * u + x[o + 1] * v
             d_new /= np.linalg.norm(d_new)
             out += [p + x[o + 2] * u + x[o + 3] * v, d_new]
-        from .se3 import make_pose, so3_exp
-
         T0 = make_pose(so3_exp(x[8:11]) @ self.T0[:3, :3], self.T0[:3, 3] + x[11:14])
         return _Params(*out, T0)
 

@@ -14,12 +14,16 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import yaml
+from cgamap.cga import motor_from_matrix, quaternion_from_matrix
 
+from .handeye import _COORDS, _MOTOR_BASIS_NAMES
 from .se3 import rpy_from_matrix
 
 
@@ -155,9 +159,6 @@ def write_keeping_previous(path: str | Path, text: str) -> Path | None:
     """Write ``text`` to ``path`` atomically (temp file, fsync, rename); a previous file there
     is kept as ``<path>.bak`` (a collection takes minutes on the robot: a re-run must not
     destroy the last one).  Returns the backup's path when there was a previous file."""
-    import os
-    import tempfile
-
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(21, "Is a directory", str(path))
@@ -183,8 +184,6 @@ def write_keeping_previous(path: str | Path, text: str) -> Path | None:
 
 def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
     """(w, x, y, z), w >= 0, through the CGA core's conversion."""
-    from cgamap.cga import quaternion_from_matrix
-
     q = quaternion_from_matrix(R)
     return -q if q[0] < 0 else q
 
@@ -192,10 +191,6 @@ def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
 def mount_motor(X: np.ndarray) -> dict[str, float]:
     """The mount as a CGA motor M = T R, by its coefficients on 1, e23, e31, e12, e1inf,
     e2inf, e3inf, e123inf (scalar part >= 0)."""
-    from cgamap.cga import motor_from_matrix
-
-    from .handeye import _COORDS, _MOTOR_BASIS_NAMES
-
     c = motor_from_matrix(X).v @ _COORDS
     c = -c if c[0] < 0 else c
     return {name: float(v) for name, v in zip(_MOTOR_BASIS_NAMES, c, strict=True)}
