@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .planes import canonical
+
 
 def sample_rect(origin, u, v, size_u: float, size_v: float, count: int,
                 rng: np.random.Generator) -> np.ndarray:
@@ -21,8 +23,7 @@ def sample_rect(origin, u, v, size_u: float, size_v: float, count: int,
 def _hesse(origin, u, v) -> tuple[np.ndarray, float]:
     n = np.cross(u, v)
     n = n / np.linalg.norm(n)
-    rho = float(n @ np.asarray(origin, float))
-    return (-n, -rho) if rho < 0 else (n, rho)
+    return canonical(n, float(n @ np.asarray(origin, float)))
 
 
 def _finish(patches, noise: float, outliers: float, rng, box=None):
