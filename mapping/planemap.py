@@ -25,7 +25,7 @@ from cgamap.cga import (
     plane_to_hesse,
 )
 
-from .planes import plane_basis
+from .planes import hull_2d, lift_uv, min_rect_2d, to_plane_uv
 
 
 @dataclass(eq=False)  # identity, not field-wise ==: fields are numpy arrays
@@ -58,7 +58,7 @@ class MapPlane:
 
     @property
     def area(self) -> float:
-        return _polygon_area(*_to_plane_2d(self.extent, self.normal))
+        return _polygon_area(to_plane_uv(self.extent, self.normal))
 
     def cga(self) -> Multivector:
         return plane_from_hesse(self.normal, self.rho)
@@ -80,28 +80,13 @@ class MapPlane:
 # ---- polygon helpers (in the plane's own 2D basis) -----------------------------------------
 
 
-def _to_plane_2d(points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    u, v = plane_basis(normal)
-    return points @ u, points @ v
-
-
-def _polygon_area(x: np.ndarray, y: np.ndarray) -> float:
+def _polygon_area(uv: np.ndarray) -> float:
+    x, y = uv[:, 0], uv[:, 1]
     return 0.5 * abs(float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)))
 
 
-def _lift(uv: np.ndarray, normal: np.ndarray, rho: float) -> np.ndarray:
-    u, v = plane_basis(normal)
-    return normal * rho + uv[:, :1] * u + uv[:, 1:2] * v
-
-
-def _hull_2d(uv: np.ndarray) -> np.ndarray:
-    return cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)
-
-
 def _min_rect(extent: np.ndarray, normal: np.ndarray, rho: float) -> np.ndarray:
-    uv = np.stack(_to_plane_2d(extent, normal), axis=1)
-    box = cv2.boxPoints(cv2.minAreaRect(uv.astype(np.float32))).astype(float)
-    return _lift(box, normal, rho)
+    return lift_uv(min_rect_2d(to_plane_uv(extent, normal)), normal, rho)
 
 
 def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -197,9 +182,9 @@ class PlaneMap:
         rho_b = b.rho if cos > 0 else -b.rho
         if abs(a.rho - rho_b) > self.rule.rho_tol:
             return False
-        pa = np.stack(_to_plane_2d(a.extent, a.normal), axis=1)
-        pb = np.stack(_to_plane_2d(b.extent, a.normal), axis=1)
-        return polygon_gap(_hull_2d(pa), _hull_2d(pb)) <= self.rule.gap
+        pa = to_plane_uv(a.extent, a.normal)
+        pb = to_plane_uv(b.extent, a.normal)
+        return polygon_gap(hull_2d(pa), hull_2d(pb)) <= self.rule.gap
 
     def _merge(self, obs: MapPlane) -> int:
         for mp in self.planes:
@@ -225,9 +210,9 @@ class PlaneMap:
         if rho < 0:
             n, rho = -n, -rho
         pts = np.concatenate([mp.extent, obs.extent])
-        uv = _hull_2d(np.stack(_to_plane_2d(pts, n), axis=1))
+        uv = hull_2d(to_plane_uv(pts, n))
         mp.normal, mp.rho = n, float(rho)
-        mp.extent = _lift(uv, n, rho)
+        mp.extent = lift_uv(uv, n, rho)
         mp.corners = _min_rect(mp.extent, n, rho)
         mp.inliers = mp.inliers + obs.inliers
         mp.observations += obs.observations

@@ -109,15 +109,32 @@ def plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(n, u)
 
 
+def to_plane_uv(points: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(n, 2) coordinates of points in the plane's (u, v) basis (:func:`plane_basis`)."""
+    u, v = plane_basis(normal)
+    return np.stack([points @ u, points @ v], axis=1)
+
+
+def lift_uv(uv: np.ndarray, normal: np.ndarray, rho: float) -> np.ndarray:
+    """(n, 3) points of the plane (normal, rho) at in-plane coordinates uv."""
+    u, v = plane_basis(normal)
+    return normal * rho + uv[:, :1] * u + uv[:, 1:2] * v
+
+
+def hull_2d(uv: np.ndarray) -> np.ndarray:
+    return cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)
+
+
+def min_rect_2d(uv: np.ndarray) -> np.ndarray:
+    """(4, 2) corners of the minimum-area rectangle around uv."""
+    return cv2.boxPoints(cv2.minAreaRect(uv.astype(np.float32))).astype(float)
+
+
 def _extent(points: np.ndarray, n: np.ndarray, rho: float
             ) -> tuple[np.ndarray, np.ndarray, float]:
     """Convex hull polygon, minimum-area rectangle corners (both in 3D) and hull area."""
-    u, v = plane_basis(n)
-    uv = np.stack([points @ u, points @ v], axis=1)
-    origin = n * rho
-    hull32 = cv2.convexHull(uv.astype(np.float32))
-    box = cv2.boxPoints(cv2.minAreaRect(hull32)).astype(float)
-    hull = hull32.reshape(-1, 2).astype(float)
+    hull = hull_2d(to_plane_uv(points, n))
+    box = min_rect_2d(hull)
     # ensure counter-clockwise about n
     if len(hull) >= 3:
         area2 = np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
@@ -125,11 +142,7 @@ def _extent(points: np.ndarray, n: np.ndarray, rho: float
             hull = hull[::-1]
     else:
         area2 = 0.0
-
-    def lift(q):
-        return origin + q[:, :1] * u + q[:, 1:2] * v
-
-    return lift(hull), lift(box), abs(float(area2)) / 2
+    return lift_uv(hull, n, rho), lift_uv(box, n, rho), abs(float(area2)) / 2
 
 
 def largest_region(points: np.ndarray, n: np.ndarray, cell: float) -> np.ndarray:
