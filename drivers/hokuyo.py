@@ -34,20 +34,13 @@ from .scip import (
     parse_fields,
     status_text,
 )
-from .transport import SerialTransport, SpyTransport, Transport, TransportError
+from .transport import Transport, TransportError
 
 log = logging.getLogger(__name__)
 
 ENCODINGS = ("D", "S", "E")   # 3-char ranges, 2-char ranges, ranges + intensities
 # RS-232 rates SCIP's SS command takes (urg_library's list); power-on default 19200
 BAUD_RATES = (19200, 57600, 115200, 250000, 500000, 750000)
-
-
-def _line_baud(tr: Transport) -> int | None:
-    """The serial rate of a transport, or None when it is not a serial line."""
-    while isinstance(tr, SpyTransport):
-        tr = tr.inner
-    return tr.baud if isinstance(tr, SerialTransport) else None
 
 
 class ScipError(DeviceError):
@@ -306,14 +299,14 @@ class HokuyoDriver(LaserDriver):
     def _connect_line(self) -> None:
         """Probe; on a serial line find the sensor's rate if needed, then switch to ``baud``."""
         tr = self._tr()
-        current = _line_baud(tr)
+        current = tr.baud
         try:
             self._probe()
         except DeviceError:
             if current is None:
                 raise
             self._detect_baud(current)
-        current = _line_baud(tr)
+        current = tr.baud
         if current is not None and self.baud is not None and current != self.baud:
             reply = self._command(f"SS{self.baud:06d}")
             if reply.status not in ("00", "03", "04"):   # 03/04: already at that rate

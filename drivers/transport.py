@@ -107,6 +107,11 @@ class Transport:
                 return bytes(out)
             out += chunk
 
+    @property
+    def baud(self) -> int | None:
+        """The line rate, or None when the stream is not a serial line."""
+        return None
+
     def set_baud(self, baud: int) -> None:
         """Change the line rate (serial only; a no-op on network transports)."""
 
@@ -265,6 +270,10 @@ class SpyTransport(Transport):
     def write(self, data: bytes) -> int:
         self._dump("TX", data)
         return self.inner.write(data)
+
+    @property
+    def baud(self) -> int | None:
+        return self.inner.baud
 
     def set_baud(self, baud: int) -> None:
         spy_log.info("-- baud %d", baud)
