@@ -5,8 +5,8 @@ It reaches the global frame through the laser chain M_GL = M_GB M_BL (DESIGN.md)
 entity X goes to M X ~M.  Its line is PP ^ einf (eq. 28), its Hough parameters (theta, rho)
 follow from the line, and its sphere is the one whose equator is the pair (eq. 12).
 
-The mapper's hot path moves only end points, with :func:`cgamap.cga.apply_points` (the
-motor's own action evaluated once on the basis): the same transform as the sandwich on the
+The mapper's hot path moves only the segments' points and moments, by the planar pose of
+the chain motor (:func:`segments_to_global`): the same transform as the sandwich on the
 point pair, which the tests pin.
 """
 
