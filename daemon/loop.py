@@ -18,27 +18,10 @@ from typing import Any
 
 import numpy as np
 from cgamap.drivers.messages import LaserScan, OdometryPose, PanTiltState, WheelTicks
+from cgamap.mapping.odometry import WheelGeometry, compose_pose2d, ticks_to_increment, wrap_angle
+from cgamap.mapping.posegraph import relative
 
 log = logging.getLogger(__name__)
-
-
-def wrap(a):
-    return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
-
-
-def relative(p0, p1) -> np.ndarray:
-    """Motion from pose p0 to p1 in p0's frame (dx, dy, dtheta)."""
-    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-    c, s = np.cos(p0[2]), np.sin(p0[2])
-    d = p1[:2] - p0[:2]
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap(p1[2] - p0[2]))])
-
-
-def compose(p, inc) -> np.ndarray:
-    p, inc = np.asarray(p, float), np.asarray(inc, float)
-    c, s = np.cos(p[2]), np.sin(p[2])
-    return np.array([p[0] + c * inc[0] - s * inc[1], p[1] + s * inc[0] + c * inc[1],
-                     float(wrap(p[2] + inc[2]))])
 
 
 class PoseHistory:
@@ -73,9 +56,9 @@ class PoseHistory:
         (t0, p0), (t1, p1) = self.items[i - 1], self.items[i]
         f = (stamp_ns - t0) / max(t1 - t0, 1)
         d = p1 - p0
-        d[2] = wrap(d[2])
+        d[2] = wrap_angle(d[2])
         out = p0 + f * d
-        out[2] = wrap(out[2])
+        out[2] = wrap_angle(out[2])
         return out
 
 
@@ -83,8 +66,6 @@ class WheelOdometry:
     """Integrates wheel ticks into an odometry pose with ``mapping.odometry``."""
 
     def __init__(self, params: dict):
-        from cgamap.mapping.odometry import WheelGeometry
-
         known = {f.name for f in fields(WheelGeometry)}
         alias = {"track": "track_width"}
         kw = {alias.get(k, k): v for k, v in params.items() if alias.get(k, k) in known}
@@ -93,8 +74,6 @@ class WheelOdometry:
         self.last: tuple[int, int] | None = None
 
     def update(self, t: WheelTicks) -> np.ndarray:
-        from cgamap.mapping.odometry import compose_pose2d, ticks_to_increment
-
         if self.last is not None:
             inc = ticks_to_increment(t.left - self.last[0], t.right - self.last[1], self.geom)
             self.pose = compose_pose2d(self.pose, inc)
@@ -118,25 +97,16 @@ class Mapper2D:
               and not is_dataclass(getattr(MapperParams, k, None))}
         self._make = lambda pose: Mapper(MapperParams(mount=mount, **kw), initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
-        self.mount = mount
         self._pose = np.zeros(3)
 
     @property
     def pose(self) -> np.ndarray:
         return self._pose.copy()
 
-    def _base(self, laser_pose) -> np.ndarray:
-        fn = getattr(self.m, "base_pose", None)
-        if fn is not None:
-            return np.asarray(fn(laser_pose), dtype=float)
-        if self.mount is None:
-            return np.asarray(laser_pose, dtype=float)
-        return compose(laser_pose, relative(self.mount, (0.0, 0.0, 0.0)))
-
     def step(self, scan: LaserScan, odom) -> tuple[np.ndarray, float | None, int]:
         res = self.m.step(scan.ranges, scan.angle_min, scan.angle_increment, odom)
         q = None if res.correction is None else float(res.correction.matched_fraction)
-        self._pose = self._base(res.pose)
+        self._pose = self.m.base_pose(res.pose)
         return self._pose.copy(), q, int(res.segments)
 
     def segments(self) -> np.ndarray:
@@ -177,7 +147,7 @@ class Mapper2D:
         res = rl.relocalize(self.m.map, seg)
         if not res.found or res.pose is None:
             return None
-        return self._base(np.asarray(res.pose, dtype=float)), float(res.score)
+        return self.m.base_pose(res.pose), float(res.score)
 
 
 # -- the 3D plane map ---------------------------------------------------------------------
@@ -384,7 +354,7 @@ class MappingLoop:
         if self.mapper is None:
             # no 2D mapper: the pose follows odometry alone
             if self.last_scan_odom is not None:
-                self.pose = compose(self.pose, relative(self.last_scan_odom, odom))
+                self.pose = compose_pose2d(self.pose, relative(self.last_scan_odom, odom))
             q, nseg = None, 0
         else:
             self.pose, q, nseg = self.mapper.step(scan, odom)
@@ -507,14 +477,14 @@ class MappingLoop:
         o0, o1 = self.odom.at(base_stamp), self.odom.at(stamp_ns)
         if o0 is None or o1 is None:
             return base_pose.copy()
-        return compose(base_pose, relative(o0, o1))
+        return compose_pose2d(base_pose, relative(o0, o1))
 
     def current_pose(self) -> np.ndarray:
         """The pose now: last corrected scan pose plus the odometry since that scan."""
         latest = self.odom.latest
         if latest is None or self.last_scan_odom is None:
             return self.pose.copy()
-        return compose(self.pose, relative(self.last_scan_odom, latest[1]))
+        return compose_pose2d(self.pose, relative(self.last_scan_odom, latest[1]))
 
     def pose_list(self) -> list[float]:
         return [round(float(v), 5) for v in self.current_pose()]

@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from cgamap.daemon import config as config_mod
-from cgamap.daemon.loop import MappingLoop, PoseHistory, compose, relative
+from cgamap.daemon.loop import MappingLoop, PoseHistory
 from cgamap.drivers.messages import LaserScan, OdometryPose
 from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.odometry import compose_pose2d as compose
+from cgamap.mapping.posegraph import relative
 
 
 def cfg(**mapping) -> dict:
