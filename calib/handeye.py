@@ -69,6 +69,14 @@ def _motor_gram() -> tuple[np.ndarray, np.ndarray]:
 _GRAM_S, _GRAM_Q = _motor_gram()
 
 
+def mount_motor(X: np.ndarray) -> dict[str, float]:
+    """The mount as a CGA motor M = T R, by its coefficients on 1, e23, e31, e12, e1inf,
+    e2inf, e3inf, e123inf (scalar part >= 0)."""
+    c = motor_from_matrix(X).v @ _COORDS
+    c = -c if c[0] < 0 else c
+    return {name: float(v) for name, v in zip(_MOTOR_BASIS_NAMES, c, strict=True)}
+
+
 # ---- input checks ------------------------------------------------------------------------
 
 def _as_poses(x, name: str) -> np.ndarray:

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from cgamap.cga import motor_from_matrix, quaternion_from_matrix
+from cgamap.cga import quaternion_from_matrix
 
-from .handeye import _COORDS, _MOTOR_BASIS_NAMES
+from .handeye import mount_motor
 from .se3 import rpy_from_matrix
 
 
@@ -186,14 +186,6 @@ def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
     """(w, x, y, z), w >= 0, through the CGA core's conversion."""
     q = quaternion_from_matrix(R)
     return -q if q[0] < 0 else q
-
-
-def mount_motor(X: np.ndarray) -> dict[str, float]:
-    """The mount as a CGA motor M = T R, by its coefficients on 1, e23, e31, e12, e1inf,
-    e2inf, e3inf, e123inf (scalar part >= 0)."""
-    c = motor_from_matrix(X).v @ _COORDS
-    c = -c if c[0] < 0 else c
-    return {name: float(v) for name, v in zip(_MOTOR_BASIS_NAMES, c, strict=True)}
 
 
 def calibration_document(result, n_pairs: int, source: str | None = None,
