@@ -168,7 +168,6 @@ class HokuyoTwin(TwinControl):
         # RS-232 emulation (pty only): the rate the sensor talks at; while the host's port is
         # set to another, input is lost and output arrives as garbage.  None: USB (any rate).
         self.power_on_baud = baud
-        self.baud = baud
         self._inbuf = b""
         self._power_on()
 
@@ -221,7 +220,7 @@ class HokuyoTwin(TwinControl):
 
     # -- device state ----------------------------------------------------------------------
     def _power_on(self) -> None:
-        self.baud = getattr(self, "power_on_baud", None)
+        self.baud: int | None = self.power_on_baud
         self._laser = False
         self._tm_mode = False
         self._stream: dict | None = None
