@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 
 class CalibrationFileError(ValueError):
@@ -168,8 +169,6 @@ def _read_filestorage(path: Path) -> dict:
 
 def load_calibration(path: str | Path) -> StereoCalibration:
     """Read a stereo calibration file (YAML, either form; or an OpenCV FileStorage YAML)."""
-    import yaml
-
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -206,8 +205,6 @@ def load_calibration(path: str | Path) -> StereoCalibration:
 
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:
     """Write a calibration as plain YAML (re-readable by ``load_calibration``)."""
-    import yaml
-
     Path(path).write_text(yaml.safe_dump(calib.to_dict(), sort_keys=False))
 
 
