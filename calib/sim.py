@@ -14,14 +14,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from cgamap.cga import camera_chain, motor_from_matrix, motor_to_matrix, rotor, translator
+from cgamap.drivers.stereo_points import R_HEAD_OPTICAL as R_OPTICAL
 
 from .se3 import make_pose, so3_exp
 from .targets import ChessboardTarget
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 Y_AXIS = np.array([0.0, 1.0, 0.0])
-# Nominal head -> optical frame: optical z along head x (forward), x right (-y), y down (-z).
-R_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 def pan_tilt_head_pose(pan, tilt, axis_point) -> np.ndarray:

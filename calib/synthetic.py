@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from cgamap.drivers.stereo_points import R_HEAD_OPTICAL
 
 from .se3 import inv, make_pose, perturb, random_rotations, so3_exp
 
@@ -24,8 +25,7 @@ class Problem:
 
 def random_mount(rng: np.random.Generator) -> np.ndarray:
     """A camera mount: optical axis roughly forward, a few centimetres off the head origin."""
-    optical = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # cam -> head
-    R = random_rotations(rng, 1, np.radians(20.0))[0] @ optical
+    R = random_rotations(rng, 1, np.radians(20.0))[0] @ R_HEAD_OPTICAL  # cam -> head
     return make_pose(R, rng.uniform(-0.1, 0.1, 3))
 
 
