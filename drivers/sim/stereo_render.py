@@ -163,6 +163,11 @@ def render_view(scene: Scene3D, H_GC: np.ndarray, calib: StereoCalibration,
     return img.reshape(h, w), depth.reshape(h, w)
 
 
+def _to8(img: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """An 8-bit image of a [0, 1] rendering, with Gaussian sensor noise in grey levels."""
+    return np.clip(img * 255.0 + rng.normal(0.0, noise, img.shape), 0, 255).astype(np.uint8)
+
+
 def render_raw_pair(scene: Scene3D, H_GC: np.ndarray, K1, D1, K2, D2, R, T,
                     size: tuple[int, int], noise: float = 1.0,
                     rng: np.random.Generator | None = None
@@ -176,11 +181,7 @@ def render_raw_pair(scene: Scene3D, H_GC: np.ndarray, K1, D1, K2, D2, R, T,
     f = rectified_calibration(float(np.asarray(K1)[0, 0]), 0, 0, 0)  # fx for anti-aliasing
     left, depth = render_view(scene, H_GC, f, size, rays=camera_rays(K1, D1, size))
     right, _ = render_view(scene, H_GC @ H_12, f, size, rays=camera_rays(K2, D2, size))
-
-    def to8(img):
-        return np.clip(img * 255.0 + rng.normal(0.0, noise, img.shape), 0, 255).astype(np.uint8)
-
-    return to8(left), to8(right), depth
+    return _to8(left, noise, rng), _to8(right, noise, rng), depth
 
 
 def render_pair(scene: Scene3D, M_GC: Multivector | np.ndarray, calib: StereoCalibration,
@@ -196,11 +197,7 @@ def render_pair(scene: Scene3D, M_GC: Multivector | np.ndarray, calib: StereoCal
     rng = rng or np.random.default_rng(0)
     left, depth = render_view(scene, H, calib, size)
     right, _ = render_view(scene, H, calib, size, offset=calib.baseline)
-
-    def to8(img):
-        return np.clip(img * 255.0 + rng.normal(0.0, noise, img.shape), 0, 255).astype(np.uint8)
-
-    return to8(left), to8(right), depth
+    return _to8(left, noise, rng), _to8(right, noise, rng), depth
 
 
 def default_calibration(size: tuple[int, int] = (640, 400), fx: float = 450.0,
