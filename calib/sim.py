@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from cgamap.cga import camera_chain, motor_from_matrix, motor_to_matrix, rotor, translator
+from cgamap.cga import motor_to_matrix, rotor, translator
 from cgamap.drivers.stereo_points import R_HEAD_OPTICAL as R_OPTICAL
+from cgamap.drivers.stereo_points import CameraMount, camera_motor
 
 from .se3 import make_pose, so3_exp
 from .targets import ChessboardTarget
@@ -48,11 +49,8 @@ class SimRig:
 
     def base_T_cam(self, pan: float, tilt: float) -> np.ndarray:
         """Camera pose through the CGA camera chain (robot at the origin)."""
-        R_eye = motor_from_matrix(make_pose(self.head_T_cam[:3, :3], np.zeros(3)))
-        one = translator(np.zeros(3))
-        M = camera_chain(one, one, rotor(Z_AXIS, pan), rotor(Y_AXIS, tilt), self.axis_point,
-                         self.head_T_cam[:3, 3], R_eye)
-        return motor_to_matrix(M)
+        mount = CameraMount.from_head_T_cam(self.axis_point, self.head_T_cam)
+        return motor_to_matrix(camera_motor((0.0, 0.0, 0.0), pan, tilt, mount))
 
     def cam_T_target(self, pan: float, tilt: float) -> np.ndarray:
         C = np.linalg.inv(self.base_T_cam(pan, tilt)) @ self.base_T_target
