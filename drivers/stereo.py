@@ -151,19 +151,22 @@ def points_from_stereo_pair(left_img: np.ndarray, right_img: np.ndarray, calib,
     return disparity_to_points(disp, calib, max_depth=max_depth, stride=stride)
 
 
+def _stamp(state: PanTiltState) -> int:
+    return state.stamp_ns
+
+
 def nearest_pantilt(stamp_ns: int, states: Sequence[PanTiltState],
                     max_gap_ns: int | None = None) -> PanTiltState | None:
     """The pan-tilt state nearest in time to ``stamp_ns`` (states sorted by stamp_ns);
     None when there is none within ``max_gap_ns``."""
     if not states:
         return None
-    stamps = [s.stamp_ns for s in states]
-    i = bisect.bisect_left(stamps, stamp_ns)
-    cands = [j for j in (i - 1, i) if 0 <= j < len(states)]
-    best = min(cands, key=lambda j: abs(stamps[j] - stamp_ns))
-    if max_gap_ns is not None and abs(stamps[best] - stamp_ns) > max_gap_ns:
+    i = bisect.bisect_left(states, stamp_ns, key=_stamp)
+    cands = [states[j] for j in (i - 1, i) if 0 <= j < len(states)]
+    best = min(cands, key=lambda s: abs(s.stamp_ns - stamp_ns))
+    if max_gap_ns is not None and abs(best.stamp_ns - stamp_ns) > max_gap_ns:
         return None
-    return states[best]
+    return best
 
 
 def interpolate_pantilt(stamp_ns: int, states: Sequence[PanTiltState],
@@ -174,8 +177,7 @@ def interpolate_pantilt(stamp_ns: int, states: Sequence[PanTiltState],
     near = nearest_pantilt(stamp_ns, states, max_gap_ns)
     if near is None:
         return None
-    stamps = [s.stamp_ns for s in states]
-    i = bisect.bisect_right(stamps, stamp_ns)
+    i = bisect.bisect_right(states, stamp_ns, key=_stamp)
     if i == 0 or i == len(states):
         return near
     a, b = states[i - 1], states[i]
