@@ -134,17 +134,14 @@ class Mapper2D:
 
     def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float] | None:
         """Global pose of ``scan`` in the map by Hough-domain relocalisation, or None."""
-        try:
-            from cgamap.mapping import relocalize as rl
-        except ImportError:
-            return None
+        from cgamap.mapping.relocalize import relocalize
         from cgamap.mapping.segments import extract_segments
 
         seg = extract_segments(scan.ranges, scan.angle_min, scan.angle_increment,
                                self.m.params.segments)
         if len(seg) < 2 or len(self.m.map) < 2:
             return None
-        res = rl.relocalize(self.m.map, seg)
+        res = relocalize(self.m.map, seg)
         if not res.found or res.pose is None:
             return None
         return self.m.base_pose(res.pose), float(res.score)
