@@ -10,6 +10,7 @@ Everything here is plain data in, plain data out; the mapping maths lives in ``m
 
 from __future__ import annotations
 
+import bisect
 import collections
 import logging
 import time
@@ -47,11 +48,10 @@ class PoseHistory:
         the end value outside the covered span."""
         if not self.items:
             return None
-        t = np.fromiter((s for s, _ in self.items), dtype=np.int64, count=len(self.items))
-        i = int(np.searchsorted(t, stamp_ns))
+        i = bisect.bisect_left(self.items, stamp_ns, key=lambda item: item[0])
         if i == 0:
             return self.items[0][1].copy()
-        if i >= len(t):
+        if i >= len(self.items):
             return self.items[-1][1].copy()
         (t0, p0), (t1, p1) = self.items[i - 1], self.items[i]
         f = (stamp_ns - t0) / max(t1 - t0, 1)
