@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import yaml
 from cgamap.cga import quaternion_from_matrix
+from cgamap.mapping.fileio import backup_path, write_text_atomic  # noqa: F401 (calib.cli)
 
 from .handeye import mount_motor
 from .se3 import rpy_from_matrix
@@ -133,7 +132,8 @@ def load_pairs(path: str | Path) -> PairSet:
 
 
 def save_pairs(path: str | Path, pairs: PairSet) -> None:
-    """Write a pairs file (JSON for .json, else YAML)."""
+    """Write a pairs file (JSON for .json, else YAML) atomically; a previous one is kept as
+    ``<path>.bak``."""
     items = []
     for k in range(len(pairs)):
         item = {"base_T_head": pairs.base_T_head[k].tolist(),
@@ -147,39 +147,8 @@ def save_pairs(path: str | Path, pairs: PairSet) -> None:
     path = Path(path)
     text = (json.dumps(doc, indent=1) + "\n" if path.suffix.lower() == ".json"
             else yaml.safe_dump(doc, sort_keys=False))
-    write_keeping_previous(path, text)
-
-
-def backup_path(path: str | Path) -> Path:
-    path = Path(path)
-    return path.with_name(path.name + ".bak")
-
-
-def write_keeping_previous(path: str | Path, text: str) -> Path | None:
-    """Write ``text`` to ``path`` atomically (temp file, fsync, rename); a previous file there
-    is kept as ``<path>.bak`` (a collection takes minutes on the robot: a re-run must not
-    destroy the last one).  Returns the backup's path when there was a previous file."""
-    path = Path(path)
-    if path.is_dir():
-        raise IsADirectoryError(21, "Is a directory", str(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)  # mkstemp makes 0600; give the file the mode open() would
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        backup = None
-        if path.is_file():
-            backup = backup_path(path)
-            os.replace(path, backup)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return backup
+    # a collection takes minutes on the robot: a re-run must not destroy the last one
+    write_text_atomic(path, text, keep_previous=True)
 
 
 def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
@@ -233,5 +202,5 @@ def calibration_document(result, n_pairs: int, source: str | None = None,
 def write_calibration(path: str | Path, doc: dict) -> None:
     header = ("# cgamap hand-eye calibration (cgamap calib hand-eye).  head_T_cam maps\n"
               "# left-camera (OpenCV) coordinates into the pan-tilt head frame; metres.\n")
-    write_keeping_previous(path, header + yaml.safe_dump(doc, sort_keys=False,
-                                                         default_flow_style=None))
+    write_text_atomic(path, header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None),
+                      keep_previous=True)

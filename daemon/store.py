@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from cgamap.mapping.fileio import temp_pattern, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -80,14 +81,6 @@ def decode_checkpoint(data: bytes) -> dict:
     return payload
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 class CheckpointStore:
     """Checkpoints in ``state_dir``: ``checkpoint.json`` and the one before, ``.prev``."""
 
@@ -96,7 +89,7 @@ class CheckpointStore:
         self.saves = 0
         self.last_save_s: float | None = None  # duration of the last save
         self.last_saved_at: float | None = None
-        self._current_bad = False  # a corrupt current must not push a good .prev out
+        self._current_bad = False  # set by load() when checkpoint.json was unusable
 
     @property
     def current(self) -> Path:
@@ -111,20 +104,10 @@ class CheckpointStore:
         t0 = time.monotonic()
         self.dir.mkdir(parents=True, exist_ok=True)
         data = encode_checkpoint(payload)
-        tmp = self.dir / f".{CURRENT}.{os.getpid()}.tmp"
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o640)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view):]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        if self.current.exists() and not self._current_bad:
-            os.replace(self.current, self.previous)
+        # a corrupt current one must not push a good .prev out
+        write_bytes_atomic(self.current, data, mode=0o640,
+                           keep_previous=False if self._current_bad else PREVIOUS)
         self._current_bad = False
-        os.replace(tmp, self.current)
-        _fsync_dir(self.dir)
         self.saves += 1
         self.last_save_s = time.monotonic() - t0
         self.last_saved_at = time.time()
@@ -133,7 +116,7 @@ class CheckpointStore:
     def load(self) -> dict | None:
         """The newest readable checkpoint, else None.  A corrupt current one falls back to the
         previous with a warning; leftover temp files of a killed save are removed."""
-        for stale in self.dir.glob(f".{CURRENT}.*.tmp"):
+        for stale in self.dir.glob(temp_pattern(self.current)):
             try:
                 stale.unlink()
             except OSError:

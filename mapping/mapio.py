@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from cgamap.cga import BLADE_NAMES
 
 from .cga_segments import cga_segments
+from .fileio import write_text_atomic
 from .linemap import LineMap
 from .segments import Segments
 
@@ -71,17 +70,8 @@ def map_to_json(lmap: LineMap, metadata: dict | None = None) -> dict:
 
 def save_map(lmap: LineMap, path: str | Path, metadata: dict | None = None) -> None:
     """Write atomically (temp file + rename) so a reader never sees half a map."""
-    path = Path(path)
     doc = map_to_json(lmap, metadata)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, separators=(",", ":"))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, json.dumps(doc, separators=(",", ":")), mode=0o644)
 
 
 def _vec(seg: dict, key: str, n: int, where: str) -> np.ndarray:

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 from cgamap.cga import angle_diff, hesse_to_hough3d
 
+from .fileio import write_text_atomic
+
 
 @dataclass
 class FeatureSpec:
@@ -129,7 +131,7 @@ class PlaceDatabase:
         return (self.names[k] if d[k] <= self.threshold else None), float(d[k])
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps({
+        write_text_atomic(path, json.dumps({
             "threshold": self.threshold, "spec": self.spec.__dict__,
             "places": [{"name": n, "features": f.tolist()}
                        for n, f in zip(self.names, self.features, strict=True)]}))

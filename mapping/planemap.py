@@ -25,6 +25,7 @@ from cgamap.cga import (
     plane_to_hesse,
 )
 
+from .fileio import write_text_atomic
 from .planes import hull_2d, lift_uv, min_rect_2d, to_plane_uv
 
 
@@ -257,7 +258,7 @@ class PlaneMap:
         return pm
 
     def save_json(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1))
+        write_text_atomic(path, json.dumps(self.to_dict(), indent=1))
 
     def save_ply(self, path: str | Path) -> None:
         """ascii PLY: four corner vertices and one quad face per plane, coloured by kind."""
