@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 from cgamap.cga import quaternion_from_matrix
+from cgamap.drivers.yaml_errors import yaml_error_text
 from cgamap.mapping.fileio import backup_path, write_text_atomic  # noqa: F401 (calib.cli)
 
 from .handeye import mount_motor
@@ -124,10 +125,7 @@ def load_pairs(path: str | Path) -> PairSet:
         raise PairsFileError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: "
                              f"{exc.msg}") from None
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1} column {mark.column + 1}" if mark else ""
-        raise PairsFileError(f"{path}: invalid YAML{at}: "
-                             f"{getattr(exc, 'problem', None) or exc}") from None
+        raise PairsFileError(f"{path}: {yaml_error_text(exc, 'invalid YAML')}") from None
     return parse_pairs(data, str(path))
 
 

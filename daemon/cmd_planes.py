@@ -108,6 +108,7 @@ def _stereo_points(left: str, right: str, calib: str | None, max_depth: float) -
     import cv2
     import yaml
     from cgamap.drivers.stereo import points_from_stereo_pair
+    from cgamap.drivers.yaml_errors import yaml_error_text
 
     if not calib:
         raise UsageError("--stereo: needs --calib FILE")
@@ -124,9 +125,7 @@ def _stereo_points(left: str, right: str, calib: str | None, max_depth: float) -
     try:
         return points_from_stereo_pair(imgs[0], imgs[1], calib, max_depth=max_depth)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise UsageError(f"--calib {calib}: YAML syntax error{where}") from None
+        raise UsageError(f"--calib {calib}: {yaml_error_text(exc)}") from None
     except UnicodeDecodeError:
         raise UsageError(f"--calib {calib}: not a text (YAML) file") from None
     except (ValueError, KeyError, TypeError, OSError) as exc:

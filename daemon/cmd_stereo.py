@@ -177,6 +177,7 @@ def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int
 def _input_problem(args: argparse.Namespace, exc: Exception) -> str:
     """One line for a damaged input (a recording's frames.jsonl or calibration YAML)."""
     from cgamap.drivers.stereo_calib import CalibrationFileError
+    from cgamap.drivers.yaml_errors import yaml_error_text
 
     where = f"--device {args.device}: " if args.device else ""
     if isinstance(exc, CalibrationFileError):   # names the file and the problem
@@ -186,9 +187,7 @@ def _input_problem(args: argparse.Namespace, exc: Exception) -> str:
     if isinstance(exc, UnicodeDecodeError):
         return f"{where}a text file of the recording is not text"
     if isinstance(exc, yaml.YAMLError):
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark else ""
-        return f"{where}calibration YAML syntax error{at}"
+        return f"{where}calibration {yaml_error_text(exc)}"
     return str(exc)
 
 

@@ -16,6 +16,7 @@ from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 import yaml
+from cgamap.drivers.yaml_errors import yaml_error_text
 
 EX_CONFIG = 78
 
@@ -336,8 +337,10 @@ def load_hand_eye(path: Path, key: str) -> list[list[float]]:
         data = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
     except UnicodeDecodeError:
         raise ConfigError(key, f"{str(path)!r} is not a text (YAML) file") from None
-    except (yaml.YAMLError, OSError) as exc:
-        raise ConfigError(key, f"cannot read {str(path)!r}: {str(exc).splitlines()[0]}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(key, f"cannot read {str(path)!r}: {yaml_error_text(exc)}") from None
+    except OSError as exc:
+        raise ConfigError(key, f"cannot read {str(path)!r}: {exc.strerror or exc}") from None
     m = data.get("head_T_cam") if isinstance(data, dict) else None
     if isinstance(m, dict):  # some writers nest the matrix as {rows: .., data: ..}
         m = m.get("data") or m.get("matrix")
@@ -379,10 +382,7 @@ def load(path: str | os.PathLike) -> dict:
         raise ConfigError(exc.key_path, f"duplicate key at line {exc.line} (the first one "
                           "would be ignored)") from None
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or "syntax error"
-        raise ConfigError("", f"YAML syntax error{where}: {problem}") from None
+        raise ConfigError("", yaml_error_text(exc)) from None
     if raw is not None and not isinstance(raw, dict):
         raise ConfigError("", f"top level must be a mapping, got {_type_name(raw)}")
     cfg = validate(raw, p.resolve().parent)

@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .yaml_errors import yaml_error_text
+
 
 class CalibrationFileError(ValueError):
     """A calibration file that cannot be read or parsed; the message names the file."""
@@ -188,11 +190,8 @@ def load_calibration(path: str | Path) -> StereoCalibration:
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-            what = getattr(exc, "problem", None) or type(exc).__name__
-            raise CalibrationFileError(f"stereo calibration {path}: calibration YAML syntax "
-                                       f"error{where}: {what}") from None
+            raise CalibrationFileError(f"stereo calibration {path}: calibration "
+                                       f"{yaml_error_text(exc)}") from None
     if not isinstance(data, dict):
         raise ValueError(f"stereo calibration {path}: expected a mapping of fields")
     try:
