@@ -25,13 +25,12 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
 from .laser import DeviceError, LaserDriver
 from .messages import ErrorCounters, LaserScan
-from .transport import Transport
+from .transport import Transport, parse_device_url
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +299,7 @@ class Lms2xxStatus:
 class Lms2xxDriver(LaserDriver):
     """Driver for a SICK LMS2xx on a serial line (see the module docstring).
 
-    ``session_baud`` is the rate used while streaming (default: the URL's ``baud`` option,
+    ``session_baud`` is the rate used while streaming (default: the URL's ``baudrate``/``baud``,
     else 38400; 500000 needs RS-422).  ``angle``/``resolution`` select the variant,
     ``units`` ("cm"/"mm"), ``measuring_mode`` and ``realtime_indices`` (availability flag
     0x02: a one-byte scan counter in each B0, given as ``device_stamp``) the config block;
@@ -320,7 +319,7 @@ class Lms2xxDriver(LaserDriver):
                  **kw) -> None:
         super().__init__(device, timeout, **kw)
         if session_baud is None:
-            session_baud = _url_baud(self.url) or 38400
+            session_baud = parse_device_url(self.url).baud or 38400
         if session_baud not in BAUD_CODES:
             raise ValueError(f"LMS2xx baud must be one of {sorted(BAUD_CODES)}")
         if (angle, resolution) not in ((180, 1.0), (180, 0.5), (100, 1.0), (100, 0.5),
@@ -547,14 +546,6 @@ class Lms2xxDriver(LaserDriver):
                     return scan
             if time.monotonic() >= deadline:
                 return None
-
-
-def _url_baud(url: str) -> int | None:
-    try:
-        q = parse_qs(urlsplit(url.removeprefix("spy+")).query)
-        return int(q["baud"][-1]) if "baud" in q else None
-    except ValueError:
-        return None
 
 
 __all__ = [

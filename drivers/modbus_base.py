@@ -41,7 +41,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import re
 import select
 import socket
 import termios
@@ -49,10 +48,10 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
 
 from .messages import ErrorCounters, WheelTicks
 from .pacing import wait_next_slot
+from .transport import parse_device_url
 
 log = logging.getLogger(__name__)
 
@@ -221,28 +220,9 @@ def _int_option(url: str, name: str, value: Any) -> int:
         raise ModbusBaseConfigError(f"{url}: {name} {value!r} is not a whole number") from None
 
 
-def _parse_url(url: str) -> tuple[str, str, int | None, dict[str, str]]:
-    """(kind, host or path, port, options) with kind tcp, rtu+tcp or rtu."""
-    if "://" not in url and re.fullmatch(r"[\w.\-]+:\d+(\?.*)?", url):
-        url = "tcp://" + url      # bare host:port, as `cgamap sim-device modbus-base` prints
-    parts = urlsplit(url)
-    opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
-    if parts.scheme in ("tcp", "modbus+tcp", "rtu+tcp", "socket"):
-        try:
-            port = parts.port
-        except ValueError:          # a non-numeric or out-of-range port
-            port = None
-        if not parts.hostname or not port:
-            raise ModbusBaseConfigError(f"{url}: expected {parts.scheme}://host:port")
-        kind = "tcp" if parts.scheme in ("tcp", "modbus+tcp") else "rtu+tcp"
-        return kind, parts.hostname, port, opts
-    if parts.scheme in ("serial", "rtu", ""):
-        path = parts.path if parts.scheme else url.split("?")[0]
-        if not path:
-            raise ModbusBaseConfigError(f"{url}: no serial device path")
-        return "rtu", path, None, opts
-    raise ModbusBaseConfigError(f"{url}: unsupported scheme {parts.scheme!r} "
-                          "(tcp://, rtu+tcp://, serial:// or a device path)")
+# URL scheme -> how the client talks: Modbus TCP, RTU framing over TCP, or RTU on a serial line
+_KINDS = {"tcp": "tcp", "modbus+tcp": "tcp", "rtu+tcp": "rtu+tcp", "socket": "rtu+tcp",
+          "serial": "rtu", "rtu": "rtu"}
 
 
 class ModbusBase:
@@ -255,9 +235,9 @@ class ModbusBase:
         self.config = config
         self.errors = ErrorCounters()
         self._client = client
-        kind, where, port, opts = _parse_url(config.url)
-        self._kind, self._where, self._port = kind, where, port
-        url = config.url
+        u = parse_device_url(config.url, _KINDS, ModbusBaseConfigError)
+        self._kind, self._where, self._port = _KINDS[u.scheme], u.host or u.path, u.port
+        url, opts = config.url, u.options
         self.device_id = _int_option(url, "unit id", config.device_id if config.device_id
                                      is not None else opts.get("unit", opts.get("device_id", 1)))
         # 0 is broadcast (no replies: reads impossible); 248..255 are reserved
@@ -265,8 +245,7 @@ class ModbusBase:
             raise ModbusBaseConfigError(f"{url}: Modbus unit id must be 1..247 (0 is broadcast, "
                                         f"no replies), got {self.device_id}")
         self.baudrate = _int_option(url, "baud rate", config.baudrate if config.baudrate
-                                    is not None else opts.get("baudrate", opts.get("baud",
-                                                                                   115200)))
+                                    is not None else u.baud or 115200)
         if self.baudrate <= 0:
             raise ModbusBaseConfigError(f"{url}: baud rate must be positive, got {self.baudrate}")
         self._prev_raw: dict[str, int] = {}

@@ -38,13 +38,13 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
 
 import serial
 from cgamap.cga import Multivector, rotor
 
 from .messages import ErrorCounters, PanTiltState
 from .pacing import wait_next_slot
+from .transport import parse_device_url
 
 log = logging.getLogger(__name__)
 # a vanished port (USB unplug, twin closed the pty) shows as any of these
@@ -160,41 +160,19 @@ class PanTiltConfig:
                        tilt=replace(self.tilt, dxl_id=tilt_id))
 
 
-# pyserial URL handlers that make sense for a servo bus, besides a plain device path
-_PYSERIAL_SCHEMES = ("loop", "rfc2217", "spy", "alt")
+# a device path, serial://, a TCP serial server, and pyserial's URL handlers that make sense
+# for a servo bus
+_SCHEMES = ("serial", "tcp", "socket", "loop", "rfc2217", "spy", "alt")
 
 
-def _port_url(url: str) -> tuple[str, int | None]:
-    """pyserial URL or path, and a baud rate from the query (``baudrate=`` / ``baud=``).
+def _port_name(url: str) -> tuple[str, int | None]:
+    """What pyserial opens (a path or a pyserial URL) and the URL's baud rate, if any.
     Raises PanTiltError naming the URL for anything the port could not be opened with."""
-    try:
-        parts = urlsplit(url)
-        port = parts.port if parts.scheme in ("tcp", "socket") else None
-    except ValueError as exc:     # e.g. a non-numeric port after the host
-        raise PanTiltError(f"{url}: malformed URL ({exc})") from None
-    opts = {k: v[-1] for k, v in parse_qs(parts.query).items()}
-    baud = opts.get("baudrate", opts.get("baud"))
-    baud_i = None
-    if baud:
-        try:
-            baud_i = int(baud)
-        except ValueError:
-            raise PanTiltError(f"{url}: baud rate {baud!r} is not a whole number") from None
-        if baud_i <= 0:
-            raise PanTiltError(f"{url}: baud rate {baud_i} must be positive")
-    if parts.scheme in ("tcp", "socket"):
-        if not parts.hostname or not port:
-            raise PanTiltError(f"{url}: {parts.scheme}:// needs host:port "
-                               "(e.g. tcp://127.0.0.1:4001)")
-        return f"socket://{parts.netloc}", baud_i
-    if parts.scheme == "serial":
-        if not parts.path:
-            raise PanTiltError(f"{url}: serial:// needs a device path (serial:///dev/ttyUSB0)")
-        return parts.path, baud_i
-    if parts.scheme and parts.scheme not in _PYSERIAL_SCHEMES:
-        raise PanTiltError(f"{url}: unknown URL scheme {parts.scheme + '://'!r}; use a device "
-                           "path, serial://, tcp://host:port or socket://host:port")
-    return url.split("?")[0], baud_i
+    u = parse_device_url(url, _SCHEMES, PanTiltError)
+    if u.spy:
+        log.warning("%s: no byte tracing on the servo bus here (spy+ / trace=1 ignored; "
+                    "pyserial's spy:// traces)", url)
+    return (f"socket://{u.address}" if u.is_network else u.path), u.baud
 
 
 def _make_port_class():
@@ -255,8 +233,7 @@ class PanTilt:
         self._ph = None
         self._seq = 0
         self._fails = 0
-        url, baud = _port_url(config.url)
-        self._port_name = url
+        self._port_name, baud = _port_name(config.url)
         self.baudrate = config.baudrate or baud or 57600
 
     @property

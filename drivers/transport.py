@@ -1,11 +1,13 @@
-"""Byte transports opened from a URL string, in the manner of pyserial's ``serial_for_url``.
+"""Byte transports opened from a URL string, in the manner of pyserial's ``serial_for_url``, and
+the one parser of device URLs that every driver uses (:func:`parse_device_url`).
 
 URLs understood by :func:`open_transport`:
 
 - ``serial:///dev/ttyUSB0?baud=500000`` or a plain device path ``/dev/ttyUSB0``.  The default
   baud is 9600 (the SICK LMS2xx power-on rate; drivers that probe or switch rates call
-  :meth:`Transport.set_baud` themselves).  Options: ``baud``, ``exclusive=1`` (flock).
-- ``tcp://host:port`` (``socket://host:port`` is accepted too).
+  :meth:`Transport.set_baud` themselves).  Options: ``baud`` (or ``baudrate``), ``exclusive=1``
+  (flock).
+- ``tcp://host:port`` (``socket://host:port`` and a bare ``host:port`` are accepted too).
 - ``spy+<url>`` or ``<url>?trace=1``: a tracing wrapper that hex-dumps both directions to the
   ``cgamap.drivers.transport.spy`` logger at INFO level (``cgamap -v``).
 
@@ -17,9 +19,13 @@ open, and a device that vanishes (USB unplug, pty closed, socket reset), raise
 from __future__ import annotations
 
 import logging
+import re
 import select
 import socket
 import time
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from urllib.parse import parse_qs, urlsplit
 
 import serial
@@ -298,8 +304,124 @@ class SpyTransport(Transport):
             self.inner.timeout = value
 
 
+# -- device URLs -------------------------------------------------------------------------------
+
+#: schemes whose URL names a network peer (``scheme://host:port``)
+NETWORK_SCHEMES = frozenset({"tcp", "socket", "modbus+tcp", "rtu+tcp"})
+#: schemes whose URL names a local device path (``scheme:///dev/ttyUSB0``)
+PATH_SCHEMES = frozenset({"serial", "rtu"})
+# a bare host:port (as `cgamap sim-device` prints for TCP twins), taken as tcp://host:port
+_BARE_HOST_PORT = re.compile(r"[\w.\-]+:\d+(\?.*)?")
+
+
+class DeviceUrlError(ValueError):
+    """A device URL that cannot name a device (one line: the URL and what is wrong)."""
+
+
+@dataclass(frozen=True)
+class DeviceUrl:
+    """A device URL taken apart by :func:`parse_device_url`.
+
+    ``url`` is the URL without its ``spy+`` prefix; ``scheme`` is lower case, ``"serial"`` for a
+    plain device path.  ``path`` is the device path of the path schemes; for a scheme the parser
+    does not know (a pyserial handler such as ``loop://``) it is the URL without its query.
+    ``host``/``port`` are set for the network schemes.  ``baud`` comes from ``baudrate=`` (or
+    ``baud=``); ``options`` holds the other query options (the last value of each);
+    ``spy`` is set by a ``spy+`` prefix or ``trace=1``.
+    """
+
+    url: str
+    scheme: str
+    path: str = ""
+    host: str = ""
+    port: int | None = None
+    baud: int | None = None
+    options: Mapping[str, str] = field(default_factory=dict, hash=False)
+    spy: bool = False
+
+    @property
+    def is_network(self) -> bool:
+        return self.scheme in NETWORK_SCHEMES
+
+    @property
+    def address(self) -> str:
+        """``host:port`` (IPv6 hosts in brackets)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{host}:{self.port}"
+
+
 def _flag(value: str) -> bool:
     return value.lower() in ("1", "true", "yes", "on")
+
+
+def _forms(schemes: Collection[str]) -> str:
+    """The accepted URL forms, for an error message."""
+    forms = ["a device path"] if "serial" in schemes else []
+    forms += [f"{s}://host:port" if s in NETWORK_SCHEMES else f"{s}://" for s in schemes]
+    return ", ".join(forms[:-1]) + " or " + forms[-1] if len(forms) > 1 else "".join(forms)
+
+
+def parse_device_url(url: str, schemes: Collection[str] | None = None,
+                     error: Callable[[str], Exception] = DeviceUrlError) -> DeviceUrl:
+    """Take a device URL apart: ``[spy+]scheme://…?options``, a plain device path, or a bare
+    ``host:port`` (read as ``tcp://host:port``).
+
+    ``schemes`` limits the accepted schemes (``"serial"`` also admits a plain path); ``error``
+    is the exception class raised, with a one-line message naming the URL, for an unaccepted
+    scheme, a network URL without host or numeric port, a path scheme without a path, or a
+    ``baud``/``baudrate`` that is not a positive whole number.
+    """
+    if not url or not url.strip():
+        raise error("empty device URL")
+    rest, spy = url, False
+    while rest.startswith("spy+"):
+        rest, spy = rest[4:], True
+    if "://" not in rest and _BARE_HOST_PORT.fullmatch(rest):
+        rest = "tcp://" + rest
+    if "://" in rest:
+        parts = urlsplit(rest)
+        scheme, query = parts.scheme.lower(), parts.query
+    else:                                   # a plain device path, maybe with ?options
+        parts, scheme = None, "serial"
+        query = rest.partition("?")[2]
+    if schemes is not None and scheme not in schemes:
+        raise error(f"{url}: unknown URL scheme {scheme + '://'!r} (an unsupported scheme for "
+                    f"this device: use {_forms(schemes)})")
+    kw: dict = {}
+    if parts is None:
+        kw["path"] = rest.partition("?")[0]
+    elif scheme in NETWORK_SCHEMES:
+        try:
+            port = parts.port
+        except ValueError as exc:           # a non-numeric or out-of-range port
+            raise error(f"{url}: malformed URL ({exc}); {scheme}:// needs host:port") from None
+        if not parts.hostname or not port:
+            raise error(f"{url}: {scheme}:// needs host:port (e.g. {scheme}://127.0.0.1:4001)")
+        kw.update(host=parts.hostname, port=port)
+    elif scheme in PATH_SCHEMES:
+        # serial:///dev/x is the form; serial://dev/x means the same
+        kw["path"] = "/" + parts.netloc + parts.path if parts.netloc else parts.path
+        if not kw["path"]:
+            raise error(f"{url}: {scheme}:// needs a device path ({scheme}:///dev/ttyUSB0)")
+    else:                                   # a handler the caller passes on (pyserial's loop://)
+        kw["path"] = rest.partition("?")[0]
+    options = {k: v[-1] for k, v in parse_qs(query).items()}
+    spy = _flag(options.pop("trace", "0")) or spy
+    bauds = [options.pop(k) for k in ("baudrate", "baud") if k in options]   # baudrate wins
+    if bauds:
+        raw = bauds[0]
+        try:
+            kw["baud"] = int(raw)
+        except ValueError:
+            raise error(f"{url}: baud rate {raw!r} is not a whole number") from None
+        if kw["baud"] <= 0:
+            raise error(f"{url}: baud rate {kw['baud']} must be positive")
+    return DeviceUrl(rest, scheme, options=MappingProxyType(options), spy=spy, **kw)
+
+
+# -- opening a transport -------------------------------------------------------------------
+
+TRANSPORT_SCHEMES = ("serial", "tcp", "socket")
 
 
 def open_transport(url: str, timeout: float = 0.5, baud: int | None = None) -> Transport:
@@ -307,37 +429,15 @@ def open_transport(url: str, timeout: float = 0.5, baud: int | None = None) -> T
 
     ``baud`` is the rate used when the URL gives none (default 9600).
     """
-    if not url:
-        raise TransportError("empty device URL")
-    if url.startswith("spy+"):
-        return SpyTransport(open_transport(url[4:], timeout, baud))
-    if url.startswith("spy://"):
-        return SpyTransport(open_transport(url[6:], timeout, baud))
-    if "://" not in url:  # a plain device path, maybe with ?baud=...
-        url_for_parse = "serial://" + url
+    if url.startswith("spy://"):            # an older spelling of spy+
+        url = "spy+" + url[6:]
+    u = parse_device_url(url, TRANSPORT_SCHEMES, TransportError)
+    options = dict(u.options)
+    if u.is_network:
+        tr: Transport = TcpTransport(u.url, u.host, u.port, timeout)
     else:
-        url_for_parse = url
-    parts = urlsplit(url_for_parse)
-    query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
-    trace = _flag(query.pop("trace", "0"))
-    scheme = parts.scheme.lower()
-    if scheme == "serial":
-        path = parts.path if not parts.netloc else "/" + parts.netloc + parts.path
-        if not path:
-            raise TransportError(f"{url}: no device path")
-        try:
-            rate = int(query.pop("baud", baud or DEFAULT_BAUD))
-        except ValueError as exc:
-            raise TransportError(f"{url}: bad baud rate") from exc
-        exclusive = _flag(query.pop("exclusive", "0"))
-        tr: Transport = SerialTransport(url, path, rate, timeout, exclusive)
-    elif scheme in ("tcp", "socket"):
-        if not parts.hostname or parts.port is None:
-            raise TransportError(f"{url}: expected tcp://host:port")
-        tr = TcpTransport(url, parts.hostname, parts.port, timeout)
-    else:
-        raise TransportError(f"{url}: unknown transport scheme {scheme!r} "
-                             "(use serial://, a device path, tcp://, or spy+...)")
-    if query:
-        log.warning("%s: ignoring unknown options %s", url, ", ".join(sorted(query)))
-    return SpyTransport(tr) if trace else tr
+        exclusive = _flag(options.pop("exclusive", "0"))
+        tr = SerialTransport(u.url, u.path, u.baud or baud or DEFAULT_BAUD, timeout, exclusive)
+    if options:
+        log.warning("%s: ignoring unknown options %s", url, ", ".join(sorted(options)))
+    return SpyTransport(tr) if u.spy else tr
