@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 from cgamap.drivers.messages import LaserScan, OdometryPose, PanTiltState, WheelTicks
+from cgamap.mapping import planemap
 from cgamap.mapping.odometry import WheelGeometry, compose_pose2d, ticks_to_increment, wrap_angle
 from cgamap.mapping.posegraph import relative
 
@@ -152,59 +153,48 @@ class Mapper2D:
 
 class PlaneMap:
     """``mapping.planemap.PlaneMap`` (planes merged across frames, as CGA entities) behind
-    the loop's small interface; a plain angle/offset merge when that module is absent."""
+    the loop's small interface; checkpoints hold it under ``"planemap"``."""
 
     def __init__(self):
-        try:
-            from cgamap.mapping.planemap import PlaneMap as _PM
-        except ImportError:
-            _PM = None
-        self._cls = _PM
-        self.m = _PM() if _PM is not None else None
-        self.simple: list[dict] = []
+        self.m = planemap.PlaneMap()
 
     @property
     def planes(self) -> list:
-        return self.m.planes if self.m is not None else self.simple
+        return self.m.planes
 
     def integrate(self, detected: list) -> int:
-        if self.m is not None:
-            return len(self.m.add_planes(detected))
-        for p in detected:  # fallback: keep the larger of two planes that agree
-            n, rho = np.asarray(p.normal, float), float(p.rho)
-            same = [q for q in self.simple if np.dot(n, q["normal"]) > np.cos(np.radians(8))
-                    and abs(rho - q["rho"]) < 0.15]
-            if not same:
-                self.simple.append({"normal": n, "rho": rho, "area": float(p.area),
-                                    "corners": np.asarray(p.corners, float), "observations": 1})
-            else:
-                same[0]["observations"] += 1
-        return len(detected)
+        return len(self.m.add_planes(detected))
 
     def as_list(self) -> list[dict]:
-        if self.m is not None:
-            out = []
-            for mp in self.m.planes:
-                d = mp.to_dict()
-                d.pop("extent", None)
-                d.pop("cga", None)
-                out.append(d)
-            return out
-        return [{"normal": q["normal"].tolist(), "rho": q["rho"], "area": q["area"],
-                 "corners": q["corners"].tolist(), "observations": q["observations"]}
-                for q in self.simple]
+        out = []
+        for mp in self.m.planes:
+            d = mp.to_dict()
+            d.pop("extent", None)
+            d.pop("cga", None)
+            out.append(d)
+        return out
 
     def state(self) -> dict:
-        if self.m is not None:
-            return {"planemap": self.m.to_dict()}
-        return {"simple": self.simple}
+        return {"planemap": self.m.to_dict()}
 
     def load_state(self, st) -> None:
-        if isinstance(st, dict) and "planemap" in st and self._cls is not None:
-            self.m = self._cls.from_dict(st["planemap"])
+        if isinstance(st, dict) and "planemap" in st:
+            self.m = planemap.PlaneMap.from_dict(st["planemap"])
         elif isinstance(st, dict) and "simple" in st:
-            self.simple = [{**q, "normal": np.asarray(q["normal"], float),
-                            "corners": np.asarray(q["corners"], float)} for q in st["simple"]]
+            self.m = planemap.PlaneMap.from_dict(planemap_from_simple(st["simple"]))
+
+
+def planemap_from_simple(simple: list[dict]) -> dict:
+    """Migrate a checkpoint of the stand-in map older builds used without OpenCV (``"simple"``:
+    normal, rho, area, corners, observations per plane) into the ``PlaneMap.to_dict`` layout;
+    its corner quad becomes the extent."""
+    planes = []
+    for i, q in enumerate(simple):
+        corners = np.asarray(q["corners"], float).reshape(-1, 3)
+        planes.append({"id": i, "normal": np.asarray(q["normal"], float), "rho": float(q["rho"]),
+                       "extent": corners, "corners": corners,
+                       "observations": int(q.get("observations", 1))})
+    return {"planes": planes}
 
 
 # -- the loop -------------------------------------------------------------------------------
@@ -516,7 +506,7 @@ class MappingLoop:
     def configurations(self) -> list[dict]:
         """Corridors, stairways, doorways, workplaces among the map's planes (PRL figures),
         indices into ``planes``; empty when the module or the planes are not there."""
-        if self.planes.m is None or not self.planes.planes:
+        if not self.planes.planes:
             return []
         try:
             from cgamap.mapping.configurations import find_configurations
