@@ -50,7 +50,7 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from .messages import ErrorCounters, WheelTicks
-from .pacing import wait_next_slot
+from .pacing import paced_reads
 from .transport import parse_device_url
 
 log = logging.getLogger(__name__)
@@ -427,23 +427,12 @@ class ModbusBase:
         ``count`` limits the number of messages; ``stop`` (a threading.Event) ends the loop;
         ``max_silence_s``: raise :class:`ModbusBaseError` when no read succeeded for that long.
         """
-        period = 1.0 / self.config.rate_hz
-        t0 = last_ok = time.monotonic()
-        k = 0
-        got = 0
-        while count is None or got < count:
-            if stop is not None and stop.is_set():
-                return
-            msg = self.read()
-            now = time.monotonic()
-            if msg is not None:
-                got += 1
-                last_ok = now
-                yield msg
-            elif max_silence_s is not None and now - last_ok > max_silence_s:
-                raise ModbusBaseError(f"{self.config.url}: no reply for {max_silence_s:g} s "
-                                      f"({self.errors.as_dict()})")
-            k = wait_next_slot(t0, period, k, self.errors, stop)
+        def silent(seconds: float) -> ModbusBaseError:
+            return ModbusBaseError(f"{self.config.url}: no reply for {seconds:g} s "
+                                   f"({self.errors.as_dict()})")
+
+        return paced_reads(self.read, self.config.rate_hz, self.errors, count=count, stop=stop,
+                           max_silence_s=max_silence_s, silence_error=silent)
 
     # -- set-points ---------------------------------------------------------------------
     def set_wheel_speeds(self, left: float, right: float) -> bool:

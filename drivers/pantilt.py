@@ -43,7 +43,7 @@ import serial
 from cgamap.cga import Multivector, rotor
 
 from .messages import ErrorCounters, PanTiltState
-from .pacing import wait_next_slot
+from .pacing import paced_reads
 from .transport import parse_device_url
 
 log = logging.getLogger(__name__)
@@ -479,17 +479,7 @@ class PanTilt:
              stop: Any | None = None) -> Iterator[PanTiltState]:
         """read_state at ``rate_hz`` on absolute deadlines (missed slots skipped and counted as
         ``dropped``); yields each successful read.  ``stop``: a threading.Event."""
-        period = 1.0 / rate_hz
-        t0 = time.monotonic()
-        k = got = 0
-        while count is None or got < count:
-            if stop is not None and stop.is_set():
-                return
-            st = self.read_state()
-            if st is not None:
-                got += 1
-                yield st
-            k = wait_next_slot(t0, period, k, self.errors, stop)
+        return paced_reads(self.read_state, rate_hz, self.errors, count=count, stop=stop)
 
     def wait_until_reached(self, pan: float, tilt: float, tol: float = 0.01,
                            timeout: float = 10.0, period: float = 0.02) -> PanTiltState | None:
