@@ -57,6 +57,10 @@ def _grabber(args: argparse.Namespace):
     if args.model == "synthetic":
         config["seed"] = 0
     try:
+        if args.model == "synthetic":   # the simulator's camera, not a driver backend
+            from cgamap.drivers.sim.stereo_render import open_synthetic
+
+            return open_synthetic(args.device, **config)
         return open_grabber(args.model, args.device, config)
     except (ValueError, FileNotFoundError, OSError) as exc:
         raise UsageError(f"stereo: {exc}") from None

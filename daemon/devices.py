@@ -142,16 +142,18 @@ class SimClockGrabber:
 
 def _camera(dev: dict) -> Callable[[], Any]:
     def make():
-        from cgamap.drivers.stereo import open_grabber
-
         backend = CAMERA_BACKENDS.get(dev["model"], dev["model"])
         parts = urlsplit(dev["url"])
         params = dict(dev["params"])
         epoch = params.pop("epoch_ns", None)
-        if backend == "synthetic":
+        if backend == "synthetic":   # the simulator's camera, built here: no driver imports it
+            from cgamap.drivers.sim.stereo_render import open_synthetic
+
             where = parts.netloc or parts.path.strip("/") or "corridor"
             params.setdefault("fps", dev["rate"])
-            return SimClockGrabber(open_grabber(backend, where, params), epoch)
+            return SimClockGrabber(open_synthetic(where, **params), epoch)
+        from cgamap.drivers.stereo import open_grabber
+
         where = parts.netloc + parts.path if parts.scheme != "usb" else ""
         return open_grabber(backend, where, params)
 

@@ -2,8 +2,10 @@
 
 Backends (``open_grabber``): ``depthai`` (an OAK, StereoDepth on the device), ``opencv`` (two
 cameras or one side-by-side UVC camera, rectified and matched on the host with StereoSGBM),
-``synthetic`` (the simulated 3D world rendered as a textured pair, same SGBM path, ground
-truth attached), and ``replay`` (a recorded folder of image pairs + calibration, same path).
+and ``replay`` (a recorded folder of image pairs + calibration, same path).  The simulator's
+``synthetic`` camera (``drivers.sim.stereo_render``: the simulated 3D world rendered as a
+textured pair, same SGBM path, ground truth attached) registers itself when imported: a
+driver does not depend on the simulator.
 Every backend yields ``StereoFrame``s; ``frame_points`` / ``points_from_stereo_pair`` turn
 them into points, and ``stereo_points.camera_motor`` carries the points to the global frame.
 """
@@ -11,7 +13,7 @@ them into points, and ``stereo_points.camera_motor`` carries the points to the g
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +42,7 @@ __all__ = [
     "save_calibration", "rectified_calibration", "points_from_stereo_pair", "frame_points",
     "frame_motor", "frame_points_global", "CameraMount",
     "nearest_pantilt", "interpolate_pantilt", "pair_with_pantilt", "open_grabber", "BACKENDS",
+    "register_backend",
 ]
 
 
@@ -200,7 +203,34 @@ def pair_with_pantilt(frame: StereoFrame, states: Sequence[PanTiltState],
     return frame
 
 
-BACKENDS = ("depthai", "opencv", "synthetic", "replay")
+def _depthai(device: str | None, **config) -> StereoGrabber:
+    from .stereo_depthai import DepthaiGrabber
+
+    return DepthaiGrabber(device or "", **config)
+
+
+def _opencv(device: str | None, **config) -> StereoGrabber:
+    from .stereo_opencv import OpenCVGrabber
+
+    return OpenCVGrabber(device or "0,1", **config)
+
+
+def _replay(device: str | None, **config) -> StereoGrabber:
+    from .stereo_replay import ReplayGrabber
+
+    return ReplayGrabber(device or ".", **config)
+
+
+#: backend name -> ``factory(device, **config)``.  The drivers' own backends; others (the
+#: simulator's ``synthetic``) add themselves with :func:`register_backend`, so that no driver
+#: depends on them.
+BACKENDS: dict[str, Callable[..., StereoGrabber]] = {
+    "depthai": _depthai, "opencv": _opencv, "replay": _replay}
+
+
+def register_backend(name: str, factory: Callable[..., StereoGrabber]) -> None:
+    """Make ``open_grabber(name, device, config)`` call ``factory(device, **config)``."""
+    BACKENDS[name] = factory
 
 
 def open_grabber(model: str, device: str | None = None, config: dict | None = None
@@ -210,28 +240,15 @@ def open_grabber(model: str, device: str | None = None, config: dict | None = No
     * depthai: ``""`` / ``"auto"`` (first device) or a device id / IP;
     * opencv: ``"0,1"`` (two cameras), ``"0"`` or ``"sbs:0"`` (one side-by-side camera), or
       video file paths; needs ``config["calibration"]`` (a file path) unless rectified;
-    * synthetic: a world name (``"corridor"``, ``"stairs"``, …);
-    * replay: a folder of recorded pairs (see ``stereo_replay``).
+    * replay: a folder of recorded pairs (see ``stereo_replay``);
+    * synthetic, once ``cgamap.drivers.sim.stereo_render`` is imported: a world name
+      (``"corridor"``, ``"stairs"``, …).
     ``config`` carries backend settings (``sgbm``, ``calibration``, ``size``, ``fps``, …).
     """
-    config = dict(config or {})
-    if model == "depthai":
-        from .stereo_depthai import DepthaiGrabber
-
-        return DepthaiGrabber(device or "", **config)
-    if model == "opencv":
-        from .stereo_opencv import OpenCVGrabber
-
-        return OpenCVGrabber(device or "0,1", **config)
-    if model == "synthetic":
-        from .sim.stereo_render import SyntheticGrabber
-
-        return SyntheticGrabber(device or "corridor", **config)
-    if model == "replay":
-        from .stereo_replay import ReplayGrabber
-
-        return ReplayGrabber(device or ".", **config)
-    raise ValueError(f"stereo: unknown model {model!r} (choose from {', '.join(BACKENDS)})")
+    make = BACKENDS.get(model)
+    if make is None:
+        raise ValueError(f"stereo: unknown model {model!r} (choose from {', '.join(BACKENDS)})")
+    return make(device, **dict(config or {}))
 
 
 def sgbm_frame(seq: int, stamp_ns: int, left: np.ndarray, right: np.ndarray,

@@ -295,3 +295,37 @@ def test_broken_calibration_files_are_value_errors_naming_the_file(tmp_path):
             load_calibration(tmp_path / name)
     with pytest.raises(ValueError, match="line 3"):
         load_calibration(tmp_path / "syntax.yaml")
+
+
+def test_stereo_driver_does_not_depend_on_the_simulator():
+    """drivers.stereo (and the backends it imports) never import drivers.sim: the simulator's
+    camera registers itself; the daemon and the CLI build it from drivers.sim."""
+    import ast
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import sys, cgamap.drivers.stereo as s; "
+            "g = s.open_grabber('replay', '.'); "
+            "print(sorted(m for m in sys.modules if m.startswith('cgamap.drivers.sim')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+    import cgamap.drivers.stereo as stereo
+
+    tree = ast.parse(Path(stereo.__file__).read_text())
+    imported = [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    assert not [m for m in imported if m.startswith(("sim", ".sim", "cgamap.drivers.sim"))]
+
+
+def test_synthetic_backend_registers_itself():
+    from cgamap.drivers.sim.stereo_render import SyntheticGrabber, open_synthetic
+    from cgamap.drivers.stereo import BACKENDS, open_grabber
+
+    assert BACKENDS["synthetic"] is open_synthetic
+    g = open_grabber("synthetic", "", {"size": (64, 40)})
+    assert isinstance(g, SyntheticGrabber) and g.scene.name == "corridor"
+    with pytest.raises(ValueError, match="unknown model 'nope'.*replay"):
+        open_grabber("nope")

@@ -17,7 +17,7 @@ import numpy as np
 from cgamap.cga import Multivector, motor_to_matrix
 
 from ..messages import PanTiltState
-from ..stereo import StereoFrame, StereoGrabber, sgbm_frame
+from ..stereo import StereoFrame, StereoGrabber, register_backend, sgbm_frame
 from ..stereo_calib import StereoCalibration, rectified_calibration
 from ..stereo_points import CameraMount, camera_motor
 from ..stereo_sgbm import SgbmParams, make_matcher
@@ -263,3 +263,11 @@ class SyntheticGrabber(StereoGrabber):
         frame.meta.update({"sim_time": t, "world": self.scene.name})
         self.seq += 1
         return frame
+
+
+def open_synthetic(device: str | None = None, **config) -> SyntheticGrabber:
+    """The ``synthetic`` stereo backend: ``device`` is a world name (default corridor)."""
+    return SyntheticGrabber(device or "corridor", **config)
+
+
+register_backend("synthetic", open_synthetic)
