@@ -36,8 +36,8 @@ import numpy as np
 
 from .pty_device import PtyClosed, PtyDevice
 from .tcp_device import TcpDevice
-from .twin import SignalFaults, TwinControl, serve_until_signal
-from .world import NoiseModel, World, get_world
+from .twin import ScanTwin, SignalFaults, serve_until_signal
+from .world import NoiseModel, World
 
 MODELS = {
     "UTM-30LX": dict(dmin=23, dmax=60000, ares=1440, amin=0, amax=1080, afrt=540, scan=2400,
@@ -129,8 +129,11 @@ def _passes_checks(orig: bytes, got: bytes) -> bool:
     return not body.translate(None, bytes(range(0x30, 0x70)))
 
 
-class HokuyoTwin(TwinControl):
-    """A SCIP 2.0 Hokuyo on a pty.  Use as a context manager or call start()/close()."""
+class HokuyoTwin(ScanTwin):
+    """A SCIP 2.0 Hokuyo on a pty.  Use as a context manager or call start()/close().
+
+    ``speed`` is the device clock's rate relative to the host's (ScanTwin's ``time_scale``).
+    """
 
     _thread_name = "hokuyo-twin"
     _join_s = 2.0
@@ -141,21 +144,18 @@ class HokuyoTwin(TwinControl):
                  scip1: bool = False, clock0_ms: int = 0, status: str = "00",
                  epoch: float | None = None, tcp_port: int | None = None,
                  baud: int | None = None) -> None:
-        super().__init__()
         name = ALIASES.get(model.lower(), model)
         if name not in MODELS:
             raise ValueError(f"unknown Hokuyo model {model!r}; choose from {sorted(MODELS)}")
+        if noise is None:
+            noise = NoiseModel(sigma=0.01, dropout=0.01)    # more dropouts than ScanTwin's
+        super().__init__(world, seed=seed, fault_rate=fault_rate, time_scale=speed, noise=noise)
         self.model = name
         self.p = MODELS[name]
-        self.world = get_world(world) if isinstance(world, str) else world
-        self.noise = noise if noise is not None else NoiseModel(sigma=0.01, dropout=0.01)
-        self.fault_rate = float(fault_rate)
-        self.rng = np.random.default_rng(seed)
-        self.fault_rng = np.random.default_rng(seed + 1)
-        self.speed = float(speed)
+        self.fault_rng = np.random.default_rng(seed + 1)   # byte faults apart from range noise
         self.clock0_ms = int(clock0_ms)
         self.bm_status = status               # answer to BM (e.g. "01" = laser malfunction)
-        self.sent: deque[SentScan] = deque(maxlen=100000)
+        self.sent: deque[SentScan]            # ScanTwin's record: a SentScan per scan reply
         self.commands: list[str] = []          # every command line received
         self.command_errors = 0                # commands whose handling raised (twin kept serving)
         # a pty (serial and USB models), or loopback TCP (Ethernet models) with tcp_port
@@ -172,6 +172,10 @@ class HokuyoTwin(TwinControl):
         self._power_on()
 
     # -- life cycle ------------------------------------------------------------------------
+    @property
+    def speed(self) -> float:
+        return self.time_scale
+
     @property
     def path(self) -> str:
         """The pty path (or link), or host:port for TCP."""

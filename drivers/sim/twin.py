@@ -25,7 +25,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Self
+from typing import Any, Self
 
 import numpy as np
 
@@ -131,8 +131,9 @@ class TwinControl:
 
 
 class ScanTwin(TwinControl):
-    """A :class:`TwinControl` that ray-casts scans from a simulated world (the SICK twins):
-    the world, its noise, the random stream for noise and faults, and what was sent."""
+    """A :class:`TwinControl` that ray-casts scans from a simulated world (the SICK and Hokuyo
+    twins): the world, its noise, the random stream for noise and faults, the device clock's
+    ``time_scale``, and what was sent."""
 
     def __init__(self, world: str | World, *, seed: int, fault_rate: float, time_scale: float,
                  noise: NoiseModel | None) -> None:
@@ -142,8 +143,9 @@ class ScanTwin(TwinControl):
         self.fault_rate = float(fault_rate)
         self.time_scale = float(time_scale)
         self.noise = noise if noise is not None else NoiseModel(sigma=0.01, dropout=0.002)
-        # per streamed scan telegram: (its values as a key, whether it left intact)
-        self.sent: collections.deque[tuple[bytes, bool]] = collections.deque(maxlen=200000)
+        # per streamed scan telegram, the twin's record of it (the SICK twins: its values as a
+        # key and whether it left intact; the Hokuyo twin: a SentScan)
+        self.sent: collections.deque[Any] = collections.deque(maxlen=200000)
         # ground truth per generated scan: (device counter, sim time, x, y, theta)
         self.truth: collections.deque[tuple[int, float, float, float, float]] = \
             collections.deque(maxlen=200000)
