@@ -23,15 +23,12 @@ from __future__ import annotations
 
 import heapq
 import math
-import os
 import random
-import select
-import threading
 import time
-import tty
 from dataclasses import dataclass, field
 
-from .twin import close_fds, flip_bytes, serve_until_signal
+from .pty_device import PtyClosed, PtyDevice
+from .twin import TwinControl, flip_bytes, serve_until_signal
 
 # -- protocol 2.0 framing (pure) --------------------------------------------------------------
 
@@ -316,11 +313,14 @@ class AxServoSim:
         return 0
 
 
-class DynamixelBusTwin:
+class DynamixelBusTwin(TwinControl):
     """Servos on one pty bus; ``start()`` returns the path to give the SDK's PortHandler."""
+
+    _thread_name = "dxl-twin"
 
     def __init__(self, models: dict[int, int] | None = None, fault_rate: float = 0.0,
                  seed: int = 0, protocol: float = 2.0) -> None:
+        super().__init__()
         if protocol not in (1.0, 2.0):
             raise ValueError(f"dynamixel twin: protocol {protocol}: 1.0 or 2.0")
         self.protocol = protocol
@@ -334,12 +334,8 @@ class DynamixelBusTwin:
         self.delay_s = 0.3
         self.packets_in = 0
         self.path = ""
-        self._lock = threading.Lock()
+        self.pty: PtyDevice | None = None
         self._t = time.monotonic()
-        self._fds: list[int] = []
-        self._thread: threading.Thread | None = None
-        self._wake: tuple[int, int] | None = None
-        self._running = False
         self._outbox: list[tuple[float, int, bytes]] = []
         self._n = 0
 
@@ -485,60 +481,44 @@ class DynamixelBusTwin:
                     self._n += 1
                     heapq.heappush(self._outbox, (due, self._n, pkt))
 
-    def _serve(self) -> None:
-        master = self._fds[0]
-        wake_r = self._wake[0]
+    def _run(self) -> None:
+        pty = self.pty
         buf = bytearray()
         while self._running:
-            timeout = None
+            self._serve_requests()
+            wait = 0.05      # bounds how long stop() waits for this thread
             if self._outbox:
-                timeout = max(0.0, self._outbox[0][0] - time.monotonic())
-            ready, _, _ = select.select([master, wake_r], [], [], timeout)
-            if wake_r in ready:
-                os.read(wake_r, 64)
-            if master in ready:
-                try:
-                    data = os.read(master, 4096)
-                except OSError:
-                    return
-                buf += data
-                self._on_packets(buf)
-            while self._outbox and self._outbox[0][0] <= time.monotonic():
-                _, _, pkt = heapq.heappop(self._outbox)
-                if self.fault_rate > 0:
-                    pkt = flip_bytes(pkt, self.fault_rate, self._rng)
-                try:
-                    os.write(master, pkt)
-                except OSError:
-                    return
+                wait = min(wait, max(0.0, self._outbox[0][0] - time.monotonic()))
+            try:
+                data = pty.read(4096, wait)
+                if data:
+                    buf += data
+                    self._on_packets(buf)
+                while self._outbox and self._outbox[0][0] <= time.monotonic():
+                    _, _, pkt = heapq.heappop(self._outbox)
+                    if self.fault_rate > 0:
+                        pkt = flip_bytes(pkt, self.fault_rate, self._rng)
+                    pty.write(pkt)
+            except PtyClosed:
+                return
 
-    def start(self) -> str:
-        master, slave = os.openpty()
-        tty.setraw(slave)          # raw before anyone opens it: no echo, no CR/LF games
-        r, w = os.pipe()
-        self._fds = [master, slave, r, w]
-        self._wake = (r, w)
-        self.path = os.ttyname(slave)
-        self._running = True
-        self._t = time.monotonic()
-        self._thread = threading.Thread(target=self._serve, name="dxl-twin", daemon=True)
-        self._thread.start()
+    def start(self) -> str:  # type: ignore[override]  # the path, as serve_until_signal wants
+        """Open the bus pty and serve it; returns the path to give the SDK's PortHandler."""
+        if not self._running:
+            self.pty = PtyDevice()
+            self.path = self.pty.path
+            self._t = time.monotonic()
+            super().start()
         return self.path
 
     def stop(self) -> None:
-        self._running = False
-        if self._wake is not None:
-            os.write(self._wake[1], b"x")
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-        close_fds(self._fds)
-        self._wake = None
+        super().stop()
+        if self.pty is not None:
+            self.pty.close()
 
     def __enter__(self) -> DynamixelBusTwin:
+        self.start()
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 def main(args) -> int:

@@ -9,8 +9,8 @@ I/O steps, so that a test thread never closes a device the twin thread is using.
 
 :func:`serve_until_signal` is the body of a twin module's ``main(args)``: start, print where
 to connect as the first stdout line, serve until SIGINT/SIGTERM, stop; optionally SIGUSR1
-unplugs for a while and SIGUSR2 stalls.  :func:`close_fds` and :func:`flip_bytes` (line
-noise) serve the pty twins of the Modbus base and the Dynamixel bus.
+unplugs for a while and SIGUSR2 stalls.  :func:`flip_bytes` (line noise) serves the pty twins
+of the Modbus base and the Dynamixel bus, :func:`close_fds` the Modbus base's pty relay.
 """
 
 from __future__ import annotations
