@@ -7,6 +7,7 @@ it, the cooked line discipline would echo and translate bytes) and keeps its own
 With ``link`` set, :attr:`path` is a symlink to the current slave: :meth:`disconnect` closes
 the pair and removes the link (the client sees an unplug: reads and writes fail),
 :meth:`reconnect` opens a fresh pair behind the same link (the device "returns").
+:class:`LinkDevice` holds what the pty and the TCP device (``tcp_device``) share.
 
 Baud rates: a pty accepts and ignores any rate, so bytes always pass.  The slave's termios
 settings are visible from the master, so :meth:`host_baud` tells the twin the rate the client
@@ -23,6 +24,7 @@ import select
 import termios
 import time
 import tty
+from typing import Self
 
 # termios speed constants -> baud
 _SPEEDS = {getattr(termios, f"B{b}"): b for b in (
@@ -35,7 +37,37 @@ class PtyClosed(OSError):
     """The pty pair is closed (disconnected) or the master failed."""
 
 
-class PtyDevice:
+class LinkDevice:
+    """The device end of a link a twin serves (a pty, a TCP port): what the kinds share.
+    A subclass opens the link in ``_open`` and closes it in ``disconnect``."""
+
+    @property
+    def is_open(self) -> bool:
+        raise NotImplementedError
+
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def disconnect(self) -> None:
+        raise NotImplementedError
+
+    def reconnect(self) -> None:
+        """Open the link afresh (the device returns)."""
+        if self.is_open:
+            self.disconnect()
+        self._open()
+
+    def close(self) -> None:
+        self.disconnect()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class PtyDevice(LinkDevice):
     """Master side of a pty pair with select-based timeouts; optional stable symlink path."""
 
     def __init__(self, link: str | None = None) -> None:
@@ -81,21 +113,6 @@ class PtyDevice:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self.master = self._slave = None
-
-    def reconnect(self) -> None:
-        """Open a fresh pair behind the same link (the device returns)."""
-        if self.is_open:
-            self.disconnect()
-        self._open()
-
-    def close(self) -> None:
-        self.disconnect()
-
-    def __enter__(self) -> PtyDevice:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # -- I/O -------------------------------------------------------------------------------
     def read(self, n: int = 4096, timeout: float = 0.1) -> bytes:

@@ -15,10 +15,10 @@ import select
 import socket
 import time
 
-from .pty_device import PtyClosed
+from .pty_device import LinkDevice, PtyClosed
 
 
-class TcpDevice:
+class TcpDevice(LinkDevice):
     """Listening socket plus the current client, with select-based timeouts."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
@@ -26,9 +26,10 @@ class TcpDevice:
         self.listener: socket.socket | None = None
         self.client: socket.socket | None = None
         self.dropped_bytes = 0
-        self._listen()
+        self._open()
 
-    def _listen(self) -> None:
+    def _open(self) -> None:
+        """Listen (again) on the port."""
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind((self.host, self.port))
@@ -57,14 +58,6 @@ class TcpDevice:
             with contextlib.suppress(OSError):
                 self.listener.close()
             self.listener = None
-
-    def reconnect(self) -> None:
-        if self.is_open:
-            self.disconnect()
-        self._listen()
-
-    def close(self) -> None:
-        self.disconnect()
 
     def read(self, n: int = 4096, timeout: float = 0.1) -> bytes:
         """Up to ``n`` bytes from the client (accepting one if it is waiting); b"" on timeout."""
