@@ -24,6 +24,7 @@ import select
 import termios
 import time
 import tty
+from collections.abc import Callable
 from typing import Self
 
 # termios speed constants -> baud
@@ -39,17 +40,11 @@ class PtyClosed(OSError):
 
 class LinkDevice:
     """The device end of a link a twin serves (a pty, a TCP port): what the kinds share.
-    A subclass opens the link in ``_open`` and closes it in ``disconnect``."""
+    A subclass provides ``is_open``, ``_open`` (open the link) and ``disconnect`` (close it)."""
 
-    @property
-    def is_open(self) -> bool:
-        raise NotImplementedError
-
-    def _open(self) -> None:
-        raise NotImplementedError
-
-    def disconnect(self) -> None:
-        raise NotImplementedError
+    is_open: bool
+    _open: Callable[[], None]
+    disconnect: Callable[[], None]
 
     def reconnect(self) -> None:
         """Open the link afresh (the device returns)."""
