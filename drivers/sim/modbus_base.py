@@ -23,16 +23,15 @@ from __future__ import annotations
 
 import asyncio
 import math
-import os
 import random
 import select
 import threading
 import time
-import tty
 from dataclasses import dataclass, field
 
 from ..modbus_base import RegisterMap, encode_registers
-from .twin import close_fds, flip_bytes, serve_until_signal
+from .pty_device import PtyDevice
+from .twin import flip_bytes, serve_until_signal
 
 _INPUT_SPAN = 16
 _HOLDING_SPAN = 16
@@ -93,9 +92,9 @@ class ModbusBaseTwin:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server = None
         self._thread: threading.Thread | None = None
-        self._fds: list[int] = []
+        self._ptys: list[PtyDevice] = []          # RTU: the server's and the client's pty
         self._relay: threading.Thread | None = None
-        self._relay_stop: tuple[int, int] | None = None
+        self._relaying = False
 
     # -- simulation ---------------------------------------------------------------------
     def _speeds_at(self, t: float) -> tuple[tuple[float, float], float]:
@@ -300,36 +299,31 @@ class ModbusBaseTwin:
         return self.address
 
     def _open_ptys(self) -> str:
-        """Two raw ptys joined by a relay; returns the path the server opens."""
-        m_srv, s_srv = os.openpty()
-        m_cli, s_cli = os.openpty()
-        for fd in (s_srv, s_cli):
-            tty.setraw(fd)
-        r, w = os.pipe()
-        self._fds = [m_srv, s_srv, m_cli, s_cli, r, w]
-        self._relay_stop = (r, w)
-        self.address = self.url = os.ttyname(s_cli)
-
+        """Two ptys joined by a relay thread (line noise on the replies with ``fault_rate``);
+        returns the path the server opens (clients open :attr:`url`)."""
+        srv, cli = PtyDevice(), PtyDevice()
+        self._ptys = [srv, cli]
+        self.address = self.url = cli.path
         rng = random.Random(self.seed)
+        self._relaying = True
 
         def relay() -> None:
-            pair = {m_srv: m_cli, m_cli: m_srv}
-            while True:
-                ready, _, _ = select.select([m_srv, m_cli, r], [], [])
-                if r in ready:
-                    return
-                for fd in ready:
-                    try:
-                        data = os.read(fd, 4096)
-                        if fd == m_srv and self.fault_rate > 0:   # line noise on replies
+            peer = {srv.master: (srv, cli), cli.master: (cli, srv)}
+            try:
+                while self._relaying:     # the timeout bounds how long stop() waits
+                    ready, _, _ = select.select(list(peer), [], [], 0.05)
+                    for fd in ready:
+                        src, dst = peer[fd]
+                        data = src.read(4096, 0.0)
+                        if src is srv and self.fault_rate > 0:
                             data = flip_bytes(data, self.fault_rate, rng)
-                        os.write(pair[fd], data)
-                    except OSError:
-                        return
+                        dst.write(data)
+            except OSError:               # PtyClosed included: a pty failed under the relay
+                return
 
         self._relay = threading.Thread(target=relay, name="modbus-twin-relay", daemon=True)
         self._relay.start()
-        return os.ttyname(s_srv)
+        return srv.path
 
     def stop(self) -> None:
         if self._loop is not None and self._server is not None and self._loop.is_running():
@@ -340,12 +334,12 @@ class ModbusBaseTwin:
                 pass
         if self._thread is not None:
             self._thread.join(timeout=5)
-        if self._relay_stop is not None:
-            os.write(self._relay_stop[1], b"x")
-            if self._relay is not None:
-                self._relay.join(timeout=5)
-        close_fds(self._fds)
-        self._relay_stop = None
+        self._relaying = False
+        if self._relay is not None:
+            self._relay.join(timeout=5)
+        for pty in self._ptys:
+            pty.close()
+        self._ptys = []
 
     def __enter__(self) -> ModbusBaseTwin:
         return self

@@ -10,14 +10,12 @@ I/O steps, so that a test thread never closes a device the twin thread is using.
 :func:`serve_until_signal` is the body of a twin module's ``main(args)``: start, print where
 to connect as the first stdout line, serve until SIGINT/SIGTERM, stop; optionally SIGUSR1
 unplugs for a while and SIGUSR2 stalls.  :func:`flip_bytes` (line noise) serves the pty twins
-of the Modbus base and the Dynamixel bus, :func:`close_fds` the Modbus base's pty relay.
+of the Modbus base and the Dynamixel bus.
 """
 
 from __future__ import annotations
 
 import collections
-import contextlib
-import os
 import random
 import signal
 import sys
@@ -198,14 +196,6 @@ def serve_until_signal(start: Callable[[], str], stop: Callable[[], None], *,
         stop()
     sys.stdout.flush()
     return 0
-
-
-def close_fds(fds: list[int]) -> None:
-    """Close each descriptor, ignoring ones already closed; empties ``fds``."""
-    for fd in fds:
-        with contextlib.suppress(OSError):
-            os.close(fd)
-    fds.clear()
 
 
 def flip_bytes(data: bytes, rate: float, rng: random.Random) -> bytes:
