@@ -64,6 +64,22 @@ class RelocParams:
     sweep_cells: int = 20             # best cells of a correlative sweep per rotation (0: off)
     sweep_grid: float = 0.25          # cell of the sweep (m)
     sweep_points: int = 20            # scan points correlated by the sweep
+    # point-based verification (on unless off): the best coarse candidates are pulled in by
+    # a batched point-to-line ICP against the map's nearest segments, re-ranked, and the
+    # best few polished on all points (instead of the segment correction + grid polish)
+    point_refine: bool = True
+    icp_candidates: int = 120         # distinct coarse candidates pulled in on a subsample
+    icp_points: int = 48              # scan points of that first pull
+    icp_gates: tuple[float, ...] = (0.5, 0.3, 0.2, 0.12)   # gate (m) per iteration
+    final_gates: tuple[float, ...] = (0.2, 0.12, 0.08, 0.06, 0.06)
+    final_candidates: int = 12        # of those, refined on all points and ranked
+    cross_weight: float = 0.1         # rank = fit - this * crossing fraction (free space)
+    cross_skip: float = 0.3           # beam length (m) near the laser that never counts
+    cross_beams: int = 60             # beams sampled for the crossing fraction
+    cross_margin: float = 0.2         # a crossed wall's line lies this far (perpendicular)
+    # from both the laser and the beam's end: grazing beams and a laser in a doorway the
+    # map drew shut do not count
+    cross_range: float = 20.0         # beams are checked up to this far from the laser
 
 
 @dataclass
@@ -71,6 +87,7 @@ class Hypothesis:
     pose: np.ndarray   # (x, y, theta) of the laser in the map frame
     score: float       # fraction of scan points near map segments
     fit: float = 0.0   # soft version (1 - (d / inlier)^2 per point), breaks near-ties
+    crossing: float = 0.0  # fraction of beams through mapped walls (point verification)
 
 
 @dataclass
@@ -97,6 +114,47 @@ class DistanceField:
             cv2.line(img, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 0, 1)
         self.dist = cv2.distanceTransform(img, cv2.DIST_L2, 5).astype(np.float32) * resolution
         self.far = float(border)
+        self._img, self._pa, self._pb = img, pa, pb
+        self.a, self.b = np.asarray(lmap.a, float), np.asarray(lmap.b, float)
+        self._seg_id: np.ndarray | None = None
+
+    @property
+    def seg_id(self) -> np.ndarray:
+        """Index of the nearest map segment at every cell (built on first use: only the
+        point refinement needs it).  The nearest drawn pixel's label (cv2, pixel labels in
+        raster order) is mapped to the segment that drew it."""
+        if self._seg_id is None:
+            ids = np.full(self._img.shape, -1, np.int32)
+            for k, (p, q) in enumerate(zip(self._pa, self._pb, strict=True)):
+                cv2.line(ids, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), k, 1)
+            _, lab = cv2.distanceTransformWithLabels(self._img, cv2.DIST_L2, 5,
+                                                     labelType=cv2.DIST_LABEL_PIXEL)
+            ys, xs = np.nonzero(self._img == 0)
+            owner = np.maximum(ids[ys, xs], 0)
+            self._seg_id = owner[np.maximum(lab, 1) - 1].astype(np.int32)
+            d = self.b - self.a
+            L = np.maximum(np.linalg.norm(d, axis=-1), 1e-9)
+            self.u = d / L[:, None]                       # unit directions
+            self.seg_len = L
+        return self._seg_id
+
+    def nearest(self, gx: np.ndarray, gy: np.ndarray):
+        """For points (gx, gy) of any shape: (segment index, signed distance to its line,
+        distance to the segment itself, off-grid mask).  Exact point-to-line geometry on
+        the segment the grid names, so the answer is not quantised to the grid."""
+        sid_grid = self.seg_id
+        qx = np.round((gx - self.lo[0]) / self.res).astype(np.int64)
+        qy = np.round((gy - self.lo[1]) / self.res).astype(np.int64)
+        ok = (qx >= 0) & (qy >= 0) & (qx < self.size[0]) & (qy < self.size[1])
+        sid = sid_grid[np.clip(qy, 0, self.size[1] - 1), np.clip(qx, 0, self.size[0] - 1)]
+        ax, ay = self.a[sid, 0], self.a[sid, 1]
+        ux, uy = self.u[sid, 0], self.u[sid, 1]
+        rx, ry = gx - ax, gy - ay
+        e = ux * ry - uy * rx                                # along the normal (-uy, ux)
+        t = ux * rx + uy * ry
+        over = np.maximum(np.maximum(-t, t - self.seg_len[sid]), 0.0)
+        dseg = np.where(ok, np.hypot(e, over), self.far)
+        return sid, e, dseg, ok
 
     def padded_mask(self, thr: float, pad_m: float = 30.0) -> tuple[int, np.ndarray]:
         """(pad, near-wall mask ``dist < thr`` with ``pad`` false pixels on every side),
@@ -112,12 +170,18 @@ class DistanceField:
 
     def lookup(self, p: np.ndarray) -> np.ndarray:
         """Distances for points (..., 2); points off the grid count as far."""
-        q = np.round((p - self.lo) / self.res).astype(np.int64)
-        ok = (q[..., 0] >= 0) & (q[..., 1] >= 0) & (q[..., 0] < self.size[0]) & (
-            q[..., 1] < self.size[1])
-        qx = np.clip(q[..., 0], 0, self.size[0] - 1)
-        qy = np.clip(q[..., 1], 0, self.size[1] - 1)
-        return np.where(ok, self.dist[qy, qx], self.far)
+        return self.lookup_xy(p[..., 0], p[..., 1])
+
+    def lookup_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """:meth:`lookup` for separate coordinate arrays (nearest cell)."""
+        if not hasattr(self, "_flat"):
+            # one far cell appended: off-grid points index it
+            self._flat = np.append(self.dist.ravel(), np.float32(self.far))
+        qx = np.floor((x - self.lo[0]) / self.res + 0.5).astype(np.int64)
+        qy = np.floor((y - self.lo[1]) / self.res + 0.5).astype(np.int64)
+        off = (qx < 0) | (qy < 0) | (qx >= self.size[0]) | (qy >= self.size[1])
+        flat = np.where(off, self.dist.size, qy * self.size[0] + qx)
+        return self._flat[flat]
 
 
 def _rotation_hypotheses(phi_g, len_g, phi_l, len_l, P: RelocParams) -> np.ndarray:
@@ -154,7 +218,9 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     """Pose of the laser in the map from one scan's segments (laser frame) and points."""
     P = params or RelocParams()
     field = field or DistanceField(lmap, P.field_resolution)
-    if len(seg) < 2 or len(lmap) < 2:
+    # one line fixes no position, but the sweep (points against the map) may still
+    min_seg = 1 if (P.point_refine and P.sweep_cells) else 2
+    if len(seg) < min_seg or len(lmap) < 2 or len(seg.points) < 5:
         return RelocResult(False, None, 0.0, [])
     order = np.argsort(-seg.length)[: P.max_scan_lines]
     sa, sb = seg.a[order], seg.b[order]
@@ -244,7 +310,8 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             continue
         flat = cell[:, 0] * gshape[1] + cell[:, 1]
         votes = np.bincount(flat, minlength=gshape[0] * gshape[1])
-        top = np.argsort(-votes)[: P.translation_peaks]
+        k = min(P.translation_peaks, votes.size)
+        top = np.argpartition(-votes, k - 1)[:k]
         top = top[votes[top] > 0]
         # the hypothesis of a cell: mean of the intersections that fell in it
         sums_x = np.bincount(flat, T[:, 0], votes.size)[top]
@@ -261,6 +328,8 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     T = np.concatenate(cand_T)
     th = np.concatenate(cand_R)
     scores = _score(field, pts, T, th, P.coarse_dist)
+    if P.point_refine:
+        return _verify_points(field, lmap, seg.points, T, th, scores, P)
     best = np.argsort(-scores)[: max(P.refine * 3, P.refine)]
     hyps: list[Hypothesis] = []
     index = LineIndex.of(lmap.a, lmap.b)
@@ -290,6 +359,134 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if not hyps or hyps[0].score < P.min_score:
         return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _distinct(T: np.ndarray, th: np.ndarray, order: np.ndarray, cell: float, ang: float,
+              k: int) -> np.ndarray:
+    """The first ``k`` of ``order`` that fall in different (x, y, theta) cells: the best
+    candidate of each cell, so near-duplicates do not crowd out other places."""
+    key = np.stack([np.floor(T[order, 0] / cell), np.floor(T[order, 1] / cell),
+                    np.floor(np.mod(th[order], 2 * np.pi) / ang)], -1).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    return order[np.sort(first)[:k]]
+
+
+def _icp(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
+         gates: tuple[float, ...]) -> np.ndarray:
+    """Batched point-to-segment Gauss-Newton for many poses at once (H, 3): each scan point
+    pairs with the map segment nearest to it (:meth:`DistanceField.nearest`) when within the
+    iteration's gate; its residual is the distance to the closest point of that segment
+    (to the line where the point projects inside the segment, to the end point beyond it,
+    so segment ends fix the position along a corridor), with Cauchy weights.  A light
+    damping keeps a direction nothing fixes where it was."""
+    x = np.array(poses, dtype=float, copy=True)
+    px, py = pts[None, :, 0], pts[None, :, 1]
+    damp = np.eye(3) * 0.5
+    for gate in gates:
+        c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
+        rx, ry = c * px - s * py, s * px + c * py
+        gx, gy = rx + x[:, 0, None], ry + x[:, 1, None]
+        sid, e, dseg, _ = field.nearest(gx, gy)
+        ux, uy = field.u[sid, 0], field.u[sid, 1]
+        ax, ay = gx - field.a[sid, 0], gy - field.a[sid, 1]
+        t = ux * ax + uy * ay
+        tc = np.clip(t, 0.0, field.seg_len[sid])
+        dx, dy = ax - tc * ux, ay - tc * uy              # point minus its closest point
+        beyond = t != tc
+        inv = 1.0 / np.maximum(dseg, 1e-9)
+        nx = np.where(beyond, dx * inv, -uy)
+        ny = np.where(beyond, dy * inv, ux)
+        e = np.where(beyond, dseg, e)
+        scale = max(gate / 3.0, 0.02)
+        w = (dseg < gate) / (1.0 + (e / scale) ** 2)
+        J = np.stack([nx, ny, ny * rx - nx * ry], -1)               # (H, N, 3)
+        A = np.einsum("hn,hni,hnj->hij", w, J, J) + damp
+        b = np.einsum("hn,hni,hn->hi", w, J, e)
+        x -= np.linalg.solve(A, b[..., None])[..., 0]
+    x[:, 2] = _wrap(x[:, 2])
+    return x
+
+
+def _fit(field: DistanceField, pts: np.ndarray, poses: np.ndarray, inlier: float):
+    """(inlier fraction, soft fit) per pose (H, 3) from exact point-to-segment distances."""
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    gx = c * pts[None, :, 0] - s * pts[None, :, 1] + poses[:, 0, None]
+    gy = s * pts[None, :, 0] + c * pts[None, :, 1] + poses[:, 1, None]
+    d = field.nearest(gx, gy)[2]
+    return np.mean(d < inlier, -1), np.mean(np.maximum(0.0, 1.0 - (d / inlier) ** 2), -1)
+
+
+def _verify_points(field: DistanceField, lmap: LineMap, pts: np.ndarray, T: np.ndarray,
+                   th: np.ndarray, coarse: np.ndarray, P: RelocParams) -> RelocResult:
+    """Point-based verification of the coarse candidates (all vectorised over hypotheses):
+    the best distinct ones are pulled in by point-to-line ICP on a subsample and re-ranked
+    by their soft fit; the best few are refined on all points and ranked by the fit less
+    the free-space evidence (beams through mapped walls)."""
+    order = np.argsort(-coarse, kind="stable")
+    sel = _distinct(T, th, order, 0.3, np.deg2rad(3.0), P.icp_candidates)
+    sub = pts
+    if len(sub) > P.icp_points:
+        sub = sub[np.linspace(0, len(sub) - 1, P.icp_points).astype(int)]
+    poses = _icp(field, sub, np.column_stack([T[sel], th[sel]]), P.icp_gates)
+    _, fit = _fit(field, sub, poses, P.inlier_dist)
+    order = np.argsort(-fit, kind="stable")
+    keep = _distinct(poses[:, :2], poses[:, 2], order, 0.3, np.deg2rad(3.0), P.final_candidates)
+    poses = _icp(field, pts, poses[keep], P.final_gates)
+    score, fit = _fit(field, pts, poses, P.inlier_dist)
+    cross = _crossings(field, pts, poses, P) if P.cross_beams else np.zeros(len(poses))
+    rank = score + P.fit_weight * (fit - P.cross_weight * cross)
+    hyps: list[Hypothesis] = []
+    for i in np.argsort(-rank, kind="stable"):
+        if any(np.hypot(*(h.pose[:2] - poses[i, :2])) < 0.1
+               and abs(_wrap(h.pose[2] - poses[i, 2])) < np.deg2rad(1.0) for h in hyps):
+            continue  # two starts that converged to one pose
+        hyps.append(Hypothesis(poses[i].copy(), float(score[i]), float(fit[i]),
+                               float(cross[i])))
+        if len(hyps) >= max(P.refine, 1):
+            break
+    if not hyps or hyps[0].score < P.min_score:
+        return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
+    return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _crossings(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
+               P: RelocParams) -> np.ndarray:
+    """Fraction of beams per pose (H, 3) that pass through a mapped wall: free space the
+    hypothesis claims where the map has a wall.  Samples along each beam find the walls it
+    comes near (distance field); a wall counts only when its segment's line separates the
+    laser from the beam's end by ``cross_margin`` on both sides (exact, perpendicular to
+    the wall), so a beam grazing a wall it ends on, or map error of a few centimetres,
+    never counts."""
+    if not len(pts) or not len(poses):
+        return np.zeros(len(poses))
+    if len(pts) > P.cross_beams:
+        pts = pts[np.linspace(0, len(pts) - 1, P.cross_beams).astype(int)]
+    r = np.linalg.norm(pts, axis=-1)
+    step = P.crossing_step
+    f = np.arange(P.cross_skip, min(float(r.max()), P.cross_range), step)  # (S,)
+    u = pts / np.maximum(r, 1e-9)[:, None]
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    ugx = c[:, None] * u[None, :, 0] - s[:, None] * u[None, :, 1]          # (H, B)
+    ugy = s[:, None] * u[None, :, 0] + c[:, None] * u[None, :, 1]
+    ox, oy = poses[:, 0, None, None], poses[:, 1, None, None]
+    sx = ox + ugx[..., None] * f                                          # (H, B, S)
+    sy = oy + ugy[..., None] * f
+    near = field.lookup_xy(sx, sy) < 0.6 * step + 0.5 * field.res
+    near &= f[None, None, :] < (r[None, :, None] - P.cross_margin)
+    hit = np.zeros(near.shape[:2], bool)
+    h, b, k = np.nonzero(near)
+    if len(h):
+        sid, e_s, _, _ = field.nearest(sx[h, b, k], sy[h, b, k])
+        ax, ay = field.a[sid, 0], field.a[sid, 1]
+        nx, ny = -field.u[sid, 1], field.u[sid, 0]
+        ex = ox[h, 0, 0] + ugx[h, b] * r[b]                                 # beam ends
+        ey = oy[h, 0, 0] + ugy[h, b] * r[b]
+        so = nx * (ox[h, 0, 0] - ax) + ny * (oy[h, 0, 0] - ay)
+        se = nx * (ex - ax) + ny * (ey - ay)
+        m = P.cross_margin
+        crossed = (np.sign(so) != np.sign(se)) & (np.abs(so) > m) & (np.abs(se) > m)
+        hit[h[crossed], b[crossed]] = True
+    return hit.mean(-1)
 
 
 def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocParams):
@@ -361,7 +558,7 @@ def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
     c, s = np.cos(th)[:, None], np.sin(th)[:, None]
     gx = c * pts[None, :, 0] - s * pts[None, :, 1] + T[:, None, 0]
     gy = s * pts[None, :, 0] + c * pts[None, :, 1] + T[:, None, 1]
-    d = field.lookup(np.stack([gx, gy], -1))
+    d = field.lookup_xy(gx, gy)
     if soft:
         return np.mean(np.maximum(0.0, 1.0 - (d / inlier) ** 2), axis=-1)
     return np.mean(d < inlier, axis=-1)
@@ -385,15 +582,19 @@ def inlier_fraction(points: np.ndarray, pose, a: np.ndarray, b: np.ndarray,
 
 
 def crossing_fraction(field: DistanceField, points: np.ndarray, pose, step: float = 0.08,
-                      near: float = 0.3) -> float:
+                      near: float = 0.3, skip: float = 0.0, beams: int = 0) -> float:
     """Fraction of beams (laser origin -> point) that pass through a mapped wall more than
-    ``near`` before their end: free space the hypothesis claims the map says is a wall."""
+    ``near`` before their end: free space the hypothesis claims the map says is a wall.
+    The first ``skip`` metres of a beam never count (a laser standing in a doorway the map
+    drew shut); ``beams`` > 0 samples that many beams evenly."""
     if not len(points):
         return 0.0
+    if beams and len(points) > beams:
+        points = points[np.linspace(0, len(points) - 1, beams).astype(int)]
     r = np.linalg.norm(points, axis=-1)
     n = int(np.ceil(min(r.max(), 20.0) / step))
     f = (np.arange(1, n + 1) * step)[None, :]                       # distances along beams
-    valid = f < (r[:, None] - near)
+    valid = (f < (r[:, None] - near)) & (f >= skip)
     u = points / np.maximum(r, 1e-9)[:, None]
     c, s = np.cos(pose[2]), np.sin(pose[2])
     ug = u @ np.array([[c, s], [-s, c]])
