@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from cgamap.cga import angle_diff
 
 from .matching import LineIndex, match_index
 from .segments import Segments
@@ -51,9 +50,94 @@ class Correction:
         return self.matched_length / self.total_length if self.total_length > 0 else 0.0
 
 
+def _rot_t(theta) -> np.ndarray:
+    """Transposes of the rotations by theta (...,) -> (..., 2, 2): row vectors
+    p @ _rot_t(t) are rotated by t."""
+    c, s = np.cos(theta), np.sin(theta)
+    out = np.empty(np.shape(c) + (2, 2))
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, s, -s, c
+    return out
+
+
 def _transform(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    return p @ np.array([[c, s], [-s, c]]) + pose[:2]
+    return p @ _rot_t(pose[2]) + pose[:2]
+
+
+@dataclass
+class BatchCorrection:
+    """:func:`correct_batch` results, one row per pair."""
+
+    pose: np.ndarray              # (P, 3)
+    cov: np.ndarray               # (P, 3, 3)
+    matched_fraction: np.ndarray  # (P,) share of the segments' length matched
+    rms: np.ndarray               # (P,) RMS point-to-line residual of the matches (m)
+    matches: np.ndarray           # (P, k) map segment per scan segment, -1 unmatched
+
+
+def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predicted,
+                  step=1.0, params: CorrectionParams | None = None) -> BatchCorrection:
+    """Eqs. (10-11) for P independent problems at once: segments (P, k, 2) in their laser
+    frames against P line sets (``index`` over (P, m) segments), from the predictions
+    (P, 3) after steps of ``step`` metres (scalar or (P,)).
+
+    Pad with zero-length scan segments (they weigh nothing) and with map segments far
+    away (they never match).  The Gauss-Newton passes of :func:`correct_pose` run for
+    every problem together; they stop early only when all have converged."""
+    params = params or CorrectionParams()
+    pred = np.asarray(predicted, dtype=float)
+    x = pred.copy()
+    n_pairs, k = seg_a.shape[:2]
+    L = np.linalg.norm(seg_b - seg_a, axis=-1)
+    step = np.broadcast_to(np.asarray(step, dtype=float), (n_pairs,))
+    st = params.prior_trans + params.prior_trans_per_m * step
+    sr = params.prior_rot + params.prior_rot_per_m * step
+    w_prior = np.stack([st ** -2, st ** -2, sr ** -2], -1)
+    H0 = np.zeros((n_pairs, 3, 3))
+    H0[:, [0, 1, 2], [0, 1, 2]] = w_prior
+    H = H0
+    matches = np.full((n_pairs, k), -1)
+    use = np.zeros((n_pairs, 2 * k), bool)
+    e = np.zeros((n_pairs, 2 * k))
+    # the two Gauss points of every segment, laser frame
+    q = np.concatenate([seg_a + (0.5 - _G) * (seg_b - seg_a),
+                        seg_a + (0.5 + _G) * (seg_b - seg_a)], axis=1)
+    wq = np.concatenate([L, L], axis=1) * 0.5
+    if k and index.a.shape[-2]:
+        for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
+            R = _rot_t(x[:, 2])
+            t = x[:, None, :2]
+            ok, cost = match_index(seg_a @ R + t, seg_b @ R + t, index, np.deg2rad(ag), gate)
+            best = np.argmin(cost, axis=-1)
+            has = np.isfinite(cost.min(axis=-1))  # the cost is inf where no candidate
+            matches = np.where(has, best, -1)
+            r = x - pred
+            r[:, 2] = (r[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # eq. (9)
+            g = w_prior * r
+            jm = np.concatenate([best, best], axis=1)
+            use = np.concatenate([has, has], axis=1)
+            qg = q @ R + t
+            n = np.take_along_axis(index.n, jm[..., None], axis=-2)
+            e = (n * qg).sum(-1) - np.take_along_axis(index.c, jm, axis=-1)
+            rel = qg - t
+            J = np.empty(n.shape[:-1] + (3,))
+            J[..., :2] = n
+            J[..., 2] = n[..., 1] * rel[..., 0] - n[..., 0] * rel[..., 1]
+            scale = max(gate / 3.0, 0.03)
+            w = np.where(use, wq / params.sigma_point ** 2 / (1.0 + (e / scale) ** 2), 0.0)
+            JwT = np.swapaxes(J * w[..., None], -1, -2)
+            H = H0 + JwT @ J
+            g += (JwT @ e[..., None])[..., 0]
+            dx = -np.linalg.solve(H, g[..., None])[..., 0]
+            x = x + dx
+            x[:, 2] = (x[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
+            if gate <= params.converged_gate and np.max(np.abs(dx)) < 5e-4:
+                break  # converged and the gates are already tight
+    total = L.sum(axis=1)
+    matched = np.sum(L * (matches >= 0), axis=1)
+    wu = np.where(use, wq, 0.0)
+    rms = np.sqrt(np.sum(wu * e ** 2, axis=1) / np.maximum(np.sum(wu, axis=1), 1e-12))
+    return BatchCorrection(x, np.linalg.inv(H), matched / np.maximum(total, 1e-12), rms,
+                           matches)
 
 
 def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicted,
@@ -64,57 +148,27 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
     ``step`` metres."""
     params = params or CorrectionParams()
     pred = np.asarray(predicted, dtype=float)
-    x = pred.copy()
     k = len(seg_l)
     L = seg_l.length
     st = params.prior_trans + params.prior_trans_per_m * step
     sr = params.prior_rot + params.prior_rot_per_m * step
-    P = np.diag([1 / st ** 2, 1 / st ** 2, 1 / sr ** 2])
-    H = P.copy()
-    matches = np.full(k, -1)
-    rms = 0.0
-    # the two Gauss points of every segment, laser frame
-    q = np.concatenate([seg_l.a + (0.5 - _G) * (seg_l.b - seg_l.a),
-                        seg_l.a + (0.5 + _G) * (seg_l.b - seg_l.a)])
-    wq = np.concatenate([L, L]) * 0.5
+    prior_cov = np.diag([st ** 2, st ** 2, sr ** 2])
+    unmatched = Correction(pred.copy(), prior_cov, 0.0, float(L.sum()), 0.0, np.full(k, -1))
     if k == 0 or len(map_a) == 0:
-        return Correction(x, np.linalg.inv(P), 0.0, float(L.sum()), 0.0, matches)
+        return unmatched
     # map segments anywhere near the scan under the widest gate; later passes look only there
-    ga, gb = _transform(seg_l.a, x), _transform(seg_l.b, x)
+    ga, gb = _transform(seg_l.a, pred), _transform(seg_l.b, pred)
     index = map_index if map_index is not None else LineIndex.of(map_a, map_b)
     ok0, _ = match_index(ga, gb, index, np.deg2rad(max(params.angle_gates_deg)),
                          max(params.gates) * 1.5)
     near = np.nonzero(ok0.any(axis=0))[0]
     if not len(near):
-        return Correction(x, np.linalg.inv(P), 0.0, float(L.sum()), 0.0, matches)
+        return unmatched
     sub = index.subset(near)
-    mn, mc = sub.n, sub.c
-    for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
-        ga, gb = _transform(seg_l.a, x), _transform(seg_l.b, x)
-        ok, cost = match_index(ga, gb, sub, np.deg2rad(ag), gate)
-        best = np.argmin(cost, axis=1)
-        has = ok[np.arange(k), best]
-        matches = np.where(has, best, -1)
-        H = P.copy()
-        g = P @ np.array([*(x[:2] - pred[:2]), angle_diff(x[2], pred[2])])
-        if has.any():
-            jm = np.concatenate([best, best])
-            use = np.concatenate([has, has])
-            qg = _transform(q, x)[use]
-            n, c = mn[jm[use]], mc[jm[use]]
-            e = np.sum(n * qg, axis=-1) - c
-            rel = qg - x[:2]
-            J = np.column_stack([n, n[:, 0] * -rel[:, 1] + n[:, 1] * rel[:, 0]])
-            scale = max(gate / 3.0, 0.03)
-            w = wq[use] / params.sigma_point ** 2 / (1.0 + (e / scale) ** 2)
-            H += J.T @ (w[:, None] * J)
-            g += J.T @ (w * e)
-            rms = float(np.sqrt(np.sum(wq[use] * e ** 2) / np.sum(wq[use])))
-        dx = -np.linalg.solve(H, g)
-        x = x + dx
-        x[2] = float(angle_diff(x[2], 0.0))
-        if gate <= params.converged_gate and np.max(np.abs(dx)) < 5e-4:
-            break  # converged and the gates are already tight
-    matched = float(L[matches >= 0].sum())
-    matches = np.where(matches >= 0, near[np.maximum(matches, 0)], -1)
-    return Correction(x, np.linalg.inv(H), matched, float(L.sum()), rms, matches, near)
+    res = correct_batch(seg_l.a[None], seg_l.b[None],
+                        LineIndex(*(v[None] for v in vars(sub).values())), pred[None], step,
+                        params)
+    m = res.matches[0]
+    matched = float(L[m >= 0].sum())
+    return Correction(res.pose[0], res.cov[0], matched, float(L.sum()), float(res.rms[0]),
+                      np.where(m >= 0, near[np.maximum(m, 0)], -1), near)

@@ -98,22 +98,29 @@ class LineMap:
         self.last_seen = np.concatenate([self.last_seen, np.full(k, stamp)])
 
 
-def _rms(N, S) -> float:
-    _, ms, _ = tls_from_moments(np.atleast_1d(N), np.zeros((1, 2)), S[None])
-    return float(np.sqrt(ms[0]))
-
-
-def fuse(n: np.ndarray, centroid: np.ndarray, scatter: np.ndarray, a: np.ndarray,
-         b: np.ndarray) -> tuple:
-    """One segment from a group: summed moments, TLS line, union of projected extents."""
-    N = n.sum()
-    C = (n[:, None] * centroid).sum(0) / N
-    dc = centroid - C
-    S = scatter.sum(0) + np.einsum("i,ij,ik->jk", n, dc, dc)
-    d, _, _ = tls_from_moments(N, C[None], S[None])
-    d = d[0]
-    t = np.concatenate([(a - C) @ d, (b - C) @ d])
-    return N, C, S, C + t.min() * d, C + t.max() * d
+def fuse_groups(group: np.ndarray, m: int, n: np.ndarray, centroid: np.ndarray,
+                scatter: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple:
+    """:func:`fuse` for many groups at once: members with ``group`` label g in [0, m) form
+    segment g.  Returns per group (count N, centroid C, scatter S, end points pa, pb, RMS
+    orthogonal residual); groups without members get N = 0 (and meaningless geometry)."""
+    N = np.bincount(group, n, minlength=m)
+    Nn = np.where(N > 0, N, 1.0)
+    C = np.stack([np.bincount(group, n * centroid[:, 0], m),
+                  np.bincount(group, n * centroid[:, 1], m)], -1) / Nn[:, None]
+    dc = centroid - C[group]
+    Sk = scatter + n[:, None, None] * (dc[:, :, None] * dc[:, None, :])
+    S = np.stack([np.bincount(group, Sk[:, i, j], m) for i, j in ((0, 0), (0, 1), (1, 1))], -1)
+    S = S[:, [[0, 1], [1, 2]]]
+    d, ms, _ = tls_from_moments(Nn, C, S)
+    ta = np.einsum("ki,ki->k", a - C[group], d[group])
+    tb = np.einsum("ki,ki->k", b - C[group], d[group])
+    lo = np.full(m, np.inf)
+    hi = np.full(m, -np.inf)
+    np.minimum.at(lo, group, np.minimum(ta, tb))
+    np.maximum.at(hi, group, np.maximum(ta, tb))
+    empty = N == 0
+    lo[empty] = hi[empty] = 0.0
+    return N, C, S, C + lo[:, None] * d, C + hi[:, None] * d, np.sqrt(ms)
 
 
 def _components(u: np.ndarray, v: np.ndarray, n: int) -> list[list[int]]:
@@ -162,28 +169,40 @@ def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
     remove: list[int] = []
     redirect_pairs: list[tuple[int, int]] = []
     unfused: list[int] = []
-    for comp in _components(ii, jj + k, k + len(lmap)):
-        obs = [x for x in comp if x < k]
-        mp = [x - k for x in comp if x >= k]
-        n = np.concatenate([seg_g.n[obs].astype(float), lmap.n_pts[mp]])
-        c = np.concatenate([seg_g.centroid[obs], lmap.centroid[mp]])
-        S = np.concatenate([seg_g.scatter[obs], lmap.scatter[mp]])
-        a = np.concatenate([seg_g.a[obs], lmap.a[mp]])
-        b = np.concatenate([seg_g.b[obs], lmap.b[mp]])
-        N, C, Sm, pa, pb = fuse(n, c, S, a, b)
-        if _rms(N, Sm) > params.max_residual:
-            # not one wall after all (two walls, or a pose still off): keep them apart
-            unfused.extend(obs)
-            continue
-        j0 = mp[0]
-        lmap.a[j0], lmap.b[j0], lmap.n_pts[j0] = pa, pb, N
-        lmap.centroid[j0], lmap.scatter[j0] = C, Sm
-        lmap.n_obs[j0] = lmap.n_obs[mp].sum() + 1
-        lmap.created[j0] = lmap.created[mp].min()
-        lmap.last_seen[j0] = stamp
-        target[obs] = j0
-        remove.extend(mp[1:])
-        redirect_pairs.extend((r, j0) for r in mp[1:])
+    comps = _components(ii, jj + k, k + len(lmap))
+    if comps:
+        member = np.concatenate([np.asarray(c) for c in comps])
+        group = np.repeat(np.arange(len(comps)), [len(c) for c in comps])
+        is_obs = member < k
+        o, mi = member[is_obs], member[~is_obs] - k
+        go, gm = group[is_obs], group[~is_obs]
+        grp = np.concatenate([go, gm])
+        N, C, Sm, pa, pb, rms = fuse_groups(
+            grp, len(comps), np.concatenate([seg_g.n[o].astype(float), lmap.n_pts[mi]]),
+            np.concatenate([seg_g.centroid[o], lmap.centroid[mi]]),
+            np.concatenate([seg_g.scatter[o], lmap.scatter[mi]]),
+            np.concatenate([seg_g.a[o], lmap.a[mi]]), np.concatenate([seg_g.b[o], lmap.b[mi]]))
+        # a fusion that is not one wall after all (two walls, or a pose still off) is
+        # not made: those observations stay apart
+        good = rms <= params.max_residual
+        j0 = np.full(len(comps), len(lmap))
+        np.minimum.at(j0, gm, mi)  # each group's first map member keeps the fused segment
+        g_ok = np.nonzero(good)[0]
+        J = j0[g_ok]
+        lmap.a[J], lmap.b[J], lmap.n_pts[J] = pa[g_ok], pb[g_ok], N[g_ok]
+        lmap.centroid[J], lmap.scatter[J] = C[g_ok], Sm[g_ok]
+        n_obs = np.bincount(gm, lmap.n_obs[mi], len(comps))
+        first = np.full(len(comps), np.iinfo(np.int64).max)
+        np.minimum.at(first, gm, lmap.created[mi])
+        lmap.n_obs[J] = n_obs[g_ok].astype(int) + 1
+        lmap.created[J] = first[g_ok]
+        lmap.last_seen[J] = stamp
+        ok_o = good[go]
+        target[o[ok_o]] = j0[go[ok_o]]
+        unfused.extend(o[~ok_o].tolist())
+        rest = good[gm] & (mi != j0[gm])
+        remove.extend(mi[rest].tolist())
+        redirect_pairs.extend(zip(mi[rest].tolist(), j0[gm[rest]].tolist(), strict=True))
     new = np.union1d(new, np.array(unfused, dtype=int))
     start = len(lmap)
     lmap.append(seg_g.subset(new), stamp)
@@ -249,20 +268,27 @@ def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = N
     ii = rec[ii]
     if not len(ii):
         return 0
-    remove: list[int] = []
-    for comp in _components(ii, jj, m):
-        N, C, S, pa, pb = fuse(lmap.n_pts[comp], lmap.centroid[comp], lmap.scatter[comp],
-                               lmap.a[comp], lmap.b[comp])
-        if _rms(N, S) > params.max_residual:
-            continue
-        j0 = comp[0]
-        lmap.a[j0], lmap.b[j0], lmap.n_pts[j0], lmap.centroid[j0], lmap.scatter[j0] = \
-            pa, pb, N, C, S
-        lmap.n_obs[j0] = lmap.n_obs[comp].sum()
-        lmap.created[j0] = lmap.created[comp].min()
-        lmap.last_seen[j0] = lmap.last_seen[comp].max()
-        remove.extend(comp[1:])
-        _redirect(lmap, [(r, j0) for r in comp[1:]])
+    comps = _components(ii, jj, m)
+    member = np.concatenate([np.asarray(c) for c in comps])
+    group = np.repeat(np.arange(len(comps)), [len(c) for c in comps])
+    N, C, S, pa, pb, rms = fuse_groups(group, len(comps), lmap.n_pts[member],
+                                       lmap.centroid[member], lmap.scatter[member],
+                                       lmap.a[member], lmap.b[member])
+    good = rms <= params.max_residual
+    j0 = np.array([c[0] for c in comps])  # members are sorted: the first keeps the segment
+    g = np.nonzero(good)[0]
+    J = j0[g]
+    n_obs = np.bincount(group, lmap.n_obs[member], len(comps)).astype(int)
+    first = np.full(len(comps), np.iinfo(np.int64).max)
+    last = np.full(len(comps), np.iinfo(np.int64).min)
+    np.minimum.at(first, group, lmap.created[member])
+    np.maximum.at(last, group, lmap.last_seen[member])
+    lmap.a[J], lmap.b[J], lmap.n_pts[J], lmap.centroid[J], lmap.scatter[J] = \
+        pa[g], pb[g], N[g], C[g], S[g]
+    lmap.n_obs[J], lmap.created[J], lmap.last_seen[J] = n_obs[g], first[g], last[g]
+    rest = good[group] & (member != j0[group])
+    remove = member[rest].tolist()
+    _redirect(lmap, list(zip(remove, j0[group[rest]].tolist(), strict=True)))
     keep = np.ones(m, bool)
     keep[remove] = False
     _assign(lmap, lmap.subset(keep))
@@ -298,26 +324,10 @@ def refresh(lmap: LineMap, poses: np.ndarray) -> None:
     Sg = R @ lmap.c_scat @ np.swapaxes(R, 1, 2)
     ag = np.einsum("kij,kj->ki", R, lmap.c_a) + t
     bg = np.einsum("kij,kj->ki", R, lmap.c_b) + t
-    m = len(lmap)
-    seg, n = lmap.c_seg, lmap.c_n
-    N = np.bincount(seg, n, minlength=m)
+    N, C, S, pa, pb, _ = fuse_groups(lmap.c_seg, len(lmap), lmap.c_n, cg, Sg, ag, bg)
     has = N > 0
-    Nn = np.where(has, N, 1.0)
-    C = np.stack([np.bincount(seg, n * cg[:, 0], m), np.bincount(seg, n * cg[:, 1], m)], -1)
-    C /= Nn[:, None]
-    dc = cg - C[seg]
-    Sk = Sg + n[:, None, None] * np.einsum("ki,kj->kij", dc, dc)
-    S = np.zeros((m, 2, 2))
-    np.add.at(S, seg, Sk)
-    d, _, _ = tls_from_moments(Nn, C, S)
-    ta = np.einsum("ki,ki->k", ag - C[seg], d[seg])
-    tb = np.einsum("ki,ki->k", bg - C[seg], d[seg])
-    lo = np.full(m, np.inf)
-    hi = np.full(m, -np.inf)
-    np.minimum.at(lo, seg, np.minimum(ta, tb))
-    np.maximum.at(hi, seg, np.maximum(ta, tb))
     lmap.n_pts = np.where(has, N, lmap.n_pts)
     lmap.centroid = np.where(has[:, None], C, lmap.centroid)
     lmap.scatter = np.where(has[:, None, None], S, lmap.scatter)
-    lmap.a = np.where(has[:, None], C + np.where(has, lo, 0)[:, None] * d, lmap.a)
-    lmap.b = np.where(has[:, None], C + np.where(has, hi, 0)[:, None] * d, lmap.b)
+    lmap.a = np.where(has[:, None], pa, lmap.a)
+    lmap.b = np.where(has[:, None], pb, lmap.b)

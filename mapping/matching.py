@@ -48,17 +48,18 @@ def sphere_relation(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
 
 
 def line_normals(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals n (k, 2) and offsets c (k,) with n.x = c on the line through a, b."""
+    """Unit normals n (..., k, 2) and offsets c (..., k) with n.x = c on the line a-b."""
     d = b - a
     d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
-    n = np.column_stack([-d[:, 1], d[:, 0]])
+    n = np.stack([-d[..., 1], d[..., 0]], axis=-1)
     return n, np.sum(n * a, axis=-1)
 
 
 @dataclass
 class LineIndex:
     """Per-segment quantities of a fixed segment set (the map side of a match), computed
-    once and reused across the correction's iterations."""
+    once and reused across the correction's iterations.  Arrays may carry leading batch
+    axes (one segment set per batch element, see :func:`match_index`)."""
 
     a: np.ndarray
     b: np.ndarray
@@ -70,7 +71,7 @@ class LineIndex:
     @classmethod
     def of(cls, a: np.ndarray, b: np.ndarray) -> LineIndex:
         n, c = line_normals(a, b)
-        return cls(a, b, 0.5 * (a + b), 0.5 * np.hypot(*(b - a).T), n, c)
+        return cls(a, b, 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=-1), n, c)
 
     def subset(self, idx) -> LineIndex:
         return LineIndex(self.a[idx], self.b[idx], self.centre[idx], self.half[idx],
@@ -91,33 +92,39 @@ def match_candidates(a1: np.ndarray, b1: np.ndarray, a2: np.ndarray, b2: np.ndar
 
 def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float,
                 max_dist: float, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`match_candidates` against a prepared :class:`LineIndex`."""
+    """:func:`match_candidates` against a prepared :class:`LineIndex`.
+
+    Batched: with a1, b1 (..., k1, 2) and an index over (..., k2) segments the result is
+    (..., k1, k2), each batch element matched only against its own segment set."""
     margin = max_dist if margin is None else margin
-    k1, k2 = len(a1), len(idx.a)
+    k1, k2 = a1.shape[-2], idx.a.shape[-2]
+    shape = np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2]) + (k1, k2)
     if k1 == 0 or k2 == 0:
-        return np.zeros((k1, k2), bool), np.zeros((k1, k2))
+        return np.zeros(shape, bool), np.zeros(shape)
     d1 = b1 - a1
-    L1 = np.hypot(*d1.T)
+    L1 = np.linalg.norm(d1, axis=-1)
     # eq. (15) through the inner products of the normalised IPNS sphere vectors
     # s_i = up(c_i) - r_i^2/2 einf: s_i . s_i = r_i^2 and s1 . s2 = (r1^2 + r2^2 - d^2) / 2
     # (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 without forming the
     # 5-vectors (sphere_relation is the coefficient form, pinned against
     # cga.spheres_intersect by a test); containment: d <= |r1 - r2|
     c1 = 0.5 * (a1 + b1)
-    r1 = 0.5 * L1 + margin
-    r2 = idx.half + margin
-    dx = c1[:, None, 0] - idx.centre[None, :, 0]
-    dy = c1[:, None, 1] - idx.centre[None, :, 1]
+    r1 = (0.5 * L1 + margin)[..., :, None]
+    r2 = (idx.half + margin)[..., None, :]
+    dx = c1[..., :, None, 0] - idx.centre[..., None, :, 0]
+    dy = c1[..., :, None, 1] - idx.centre[..., None, :, 1]
     d2 = dx * dx + dy * dy
-    R1, R2 = (r1 * r1)[:, None], (r2 * r2)[None, :]
+    R1, R2 = r1 * r1, r2 * r2
     s12 = 0.5 * (R1 + R2 - d2)
     near = (s12 * s12 - R1 * R2 <= 1e-12 * np.maximum(1.0, R1 * R2)) | (
-        d2 <= (r1[:, None] - r2[None, :]) ** 2)
-    d1 = d1 / np.maximum(L1, 1e-12)[:, None]
+        d2 <= (r1 - r2) ** 2)
+    d1 = d1 / np.maximum(L1, 1e-12)[..., None]
     # |sin| of the undirected angle between the lines: d1 . n2 (n2 is d2 turned by 90 deg)
-    sin_ang = np.abs(d1 @ idx.n.T)
-    ada = np.abs(a1 @ idx.n.T - idx.c[None, :])
-    adb = np.abs(b1 @ idx.n.T - idx.c[None, :])
+    nT = np.swapaxes(idx.n, -1, -2)
+    cT = idx.c[..., None, :]
+    sin_ang = np.abs(d1 @ nT)
+    ada = np.abs(a1 @ nT - cT)
+    adb = np.abs(b1 @ nT - cT)
     ok = near & (sin_ang < np.sin(max_angle)) & (ada < max_dist) & (adb < max_dist)
     cost = 0.5 * (ada + adb) + 0.5 * sin_ang
     return ok, np.where(ok, cost, np.inf)
