@@ -26,7 +26,7 @@ are returned, ranked.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -80,6 +80,13 @@ class RelocParams:
     # from both the laser and the beam's end: grazing beams and a laser in a doorway the
     # map drew shut do not count
     cross_range: float = 20.0         # beams are checked up to this far from the laser
+    # cluttered scans: when no hypothesis fits better than this (soft fit), sweep all
+    # rotations (0: never); off with the sweep (sweep_cells 0)
+    fallback_fit: float = 0.75
+    fallback_rot_deg: float = 3.0
+    fallback_cells: int = 10
+    fallback_grid: float = 0.3
+    fallback_points: int = 16
 
 
 @dataclass
@@ -329,7 +336,12 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     th = np.concatenate(cand_R)
     scores = _score(field, pts, T, th, P.coarse_dist)
     if P.point_refine:
-        return _verify_points(field, lmap, seg.points, T, th, scores, P)
+        hyps = _verify_points(field, seg.points, T, th, scores, P)
+        if P.sweep_cells and P.fallback_fit and (
+                not hyps or max(h.fit for h in hyps) < P.fallback_fit):
+            T2, th2, sc2 = _fallback_sweep(field, pts, P)
+            hyps += _verify_points(field, seg.points, T2, th2, sc2, P)
+        return _ranked(hyps, P)
     best = np.argsort(-scores)[: max(P.refine * 3, P.refine)]
     hyps: list[Hypothesis] = []
     index = LineIndex.of(lmap.a, lmap.b)
@@ -416,8 +428,8 @@ def _fit(field: DistanceField, pts: np.ndarray, poses: np.ndarray, inlier: float
     return np.mean(d < inlier, -1), np.mean(np.maximum(0.0, 1.0 - (d / inlier) ** 2), -1)
 
 
-def _verify_points(field: DistanceField, lmap: LineMap, pts: np.ndarray, T: np.ndarray,
-                   th: np.ndarray, coarse: np.ndarray, P: RelocParams) -> RelocResult:
+def _verify_points(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
+                   coarse: np.ndarray, P: RelocParams) -> list[Hypothesis]:
     """Point-based verification of the coarse candidates (all vectorised over hypotheses):
     the best distinct ones are pulled in by point-to-line ICP on a subsample and re-ranked
     by their soft fit; the best few are refined on all points and ranked by the fit less
@@ -434,19 +446,41 @@ def _verify_points(field: DistanceField, lmap: LineMap, pts: np.ndarray, T: np.n
     poses = _icp(field, pts, poses[keep], P.final_gates)
     score, fit = _fit(field, pts, poses, P.inlier_dist)
     cross = _crossings(field, pts, poses, P) if P.cross_beams else np.zeros(len(poses))
-    rank = score + P.fit_weight * (fit - P.cross_weight * cross)
-    hyps: list[Hypothesis] = []
-    for i in np.argsort(-rank, kind="stable"):
-        if any(np.hypot(*(h.pose[:2] - poses[i, :2])) < 0.1
-               and abs(_wrap(h.pose[2] - poses[i, 2])) < np.deg2rad(1.0) for h in hyps):
-            continue  # two starts that converged to one pose
-        hyps.append(Hypothesis(poses[i].copy(), float(score[i]), float(fit[i]),
-                               float(cross[i])))
-        if len(hyps) >= max(P.refine, 1):
+    return [Hypothesis(q.copy(), float(a), float(b), float(c))
+            for q, a, b, c in zip(poses, score, fit, cross, strict=True)]
+
+
+def _rank_key(h: Hypothesis, P: RelocParams) -> float:
+    """Ranking: the soft fit less the free-space evidence; with ``fit_weight`` 0, the inlier
+    fraction alone (the loop closer's choice)."""
+    return h.score + P.fit_weight * (h.fit - P.cross_weight * h.crossing)
+
+
+def _ranked(hyps: list[Hypothesis], P: RelocParams) -> RelocResult:
+    """Best first, starts that converged to one pose merged, at most ``refine`` kept;
+    "not found" under ``min_score``."""
+    out: list[Hypothesis] = []
+    for h in sorted(hyps, key=lambda h: -_rank_key(h, P)):
+        if any(np.hypot(*(g.pose[:2] - h.pose[:2])) < 0.1
+               and abs(_wrap(g.pose[2] - h.pose[2])) < np.deg2rad(1.0) for g in out):
+            continue
+        out.append(h)
+        if len(out) >= max(P.refine, 1):
             break
-    if not hyps or hyps[0].score < P.min_score:
-        return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
-    return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+    if not out or out[0].score < P.min_score:
+        return RelocResult(False, None, out[0].score if out else 0.0, out)
+    return RelocResult(True, out[0].pose, out[0].score, out)
+
+
+def _fallback_sweep(field: DistanceField, pts: np.ndarray, P: RelocParams):
+    """Candidates for a scan whose lines gave no convincing pose (cluttered: its few
+    segments are furniture at odd angles, so no line pairing names the rotation): the
+    correlative sweep over all rotations at ``fallback_rot_deg`` steps."""
+    rots = np.arange(0.0, 2 * np.pi, np.deg2rad(P.fallback_rot_deg))
+    Q = replace(P, sweep_cells=P.fallback_cells, sweep_grid=P.fallback_grid,
+                sweep_points=P.fallback_points)
+    T, th = _sweep(field, pts, rots, Q)
+    return T, th, _score(field, pts, T, th, P.coarse_dist)
 
 
 def _crossings(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
