@@ -23,9 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .cga_segments import laser_motor, segments_to_global
-from .correction import Correction, CorrectionParams, correct_pose
+from .correction import Correction, CorrectionParams, correct_batch, correct_pose
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
 from .odometry import compose_pose2d as compose
@@ -34,6 +35,16 @@ from .odometry import wrap_angle as wrap
 from .posegraph import PoseGraph
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize
 from .segments import SegmentParams, Segments, extract_segments
+
+
+def _pad(segs: list[tuple[np.ndarray, np.ndarray]], fill: float) -> tuple[np.ndarray, np.ndarray]:
+    """Segment sets of different sizes as (P, k, 2) arrays a, b, padded with ``fill``."""
+    k = max(len(a) for a, _ in segs)
+    A = np.full((len(segs), k, 2), fill)
+    B = np.full((len(segs), k, 2), fill)
+    for r, (a, b) in enumerate(segs):
+        A[r, :len(a)], B[r, :len(b)] = a, b
+    return A, B
 
 
 def invert(p) -> np.ndarray:
@@ -69,6 +80,27 @@ class LoopParams:
         angle_gates_deg=(20.0, 12.0, 8.0, 5.0, 4.0, 3.0, 3.0)))
 
 
+@dataclass(frozen=True)
+class NeighbourParams:
+    """The finishing pass: every scan matched against each scan near it (scan-to-scan, no
+    fused map in between), each good match an edge of the pose graph.  Scan-to-map steps
+    inherit the fused map's bias (walls fused from slightly wrong poses, chords of curved
+    walls); direct pairs do not, and a scan's many neighbours average out its errors."""
+
+    enabled: bool = True
+    radius: float = 2.5           # pairs of scans whose positions are this close (m) ...
+    previous: int = 3             # ... and each scan with this many before it
+    max_std: float = 0.06         # accept: translation std in every direction (m)
+    min_matched: float = 0.5      # ... and this share of the scan's segment length matched
+    floor: tuple[float, float] = (0.01, 0.0033)  # added to each edge's std (m, rad)
+    sequential_weight: float = 0.05  # the scan-to-map steps' edges then count this much
+    rounds: int = 2               # match again from the re-optimised poses (2: measured best)
+    prior_step: float = 0.5       # the current estimate as prior, as wide as after this step
+    chunk: int = 512              # pairs solved together (memory ~ chunk * segments^2)
+    correction: CorrectionParams = field(default_factory=lambda: CorrectionParams(
+        gates=(0.3, 0.2, 0.12, 0.08, 0.06), angle_gates_deg=(10.0, 7.0, 5.0, 3.0, 2.5)))
+
+
 @dataclass
 class MapperParams:
     segments: SegmentParams = field(default_factory=SegmentParams)
@@ -79,6 +111,7 @@ class MapperParams:
         angle_gates_deg=(15.0, 9.0, 5.0, 4.0, 3.0, 2.5)))
     map: MapParams = field(default_factory=MapParams)
     loop: LoopParams = field(default_factory=LoopParams)
+    neighbours: NeighbourParams = field(default_factory=NeighbourParams)
     reloc: RelocParams = field(default_factory=lambda: RelocParams(
         min_score=0.6, refine=4, endpoint_lines=0, fit_weight=0.0, sweep_cells=0))
     # loop closures: no corridor guesses, no sweep (the submap is small, the guess close)
@@ -123,6 +156,9 @@ class Mapper:
         self.calib_n = 0
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
+        self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
+        self.neighbour_edges = 0
+        self._neighbours_from: int | None = None  # graph edges from here on: neighbour pass
         self.loop_stats = {"tracked": 0, "tried": 0, "no_pose": 0, "low_score": 0,
                            "ambiguous": 0}
 
@@ -224,6 +260,8 @@ class Mapper:
 
     def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
         P = self.params
+        if P.neighbours.enabled and len(self.scans) == node:
+            self.scans.append((seg.a, seg.b))
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
@@ -387,15 +425,76 @@ class Mapper:
         self.optimizations += 1
 
     def finish(self) -> np.ndarray:
-        """Final optimisation (if loops were closed), then ``refine_passes`` passes that
-        align every scan with the finished map and rebuild it; returns the laser poses."""
+        """Final optimisation (if loops were closed), the neighbour pass, then
+        ``refine_passes`` passes that align every scan with the finished map and rebuild it;
+        returns the laser poses."""
         if self.params.loop.enabled and self.loops:
             self.optimize(final=True)
             if self.params.loop.sweep_every and self._sweep_closures():
                 self.optimize(final=True)
+        for _ in range(self.params.neighbours.rounds if self.params.neighbours.enabled else 0):
+            if self._neighbour_edges():
+                self.optimize(final=True)
         for _ in range(self.params.refine_passes):
             self.refine()
         return self.poses
+
+    def neighbour_pairs(self) -> np.ndarray:
+        """(p, 2) node pairs j < i for the neighbour pass: positions within ``radius`` in the
+        current estimate, and each node with its ``previous`` predecessors."""
+        NP = self.params.neighbours
+        X = self.poses
+        n = len(X)
+        near = cKDTree(X[:, :2]).query_pairs(NP.radius, output_type="ndarray")
+        i = np.arange(n)
+        seq = [np.column_stack([i[k:] - k, i[k:]]) for k in range(1, NP.previous + 1)]
+        pairs = np.concatenate([np.sort(near, axis=1).reshape(-1, 2), *seq]).astype(int)
+        pairs = np.unique(pairs, axis=0)
+        counts = np.array([len(a) for a, _ in self.scans])
+        keep = (counts[pairs[:, 0]] >= 2) & (counts[pairs[:, 1]] >= 2)
+        return pairs[keep]
+
+    def _neighbour_edges(self) -> int:
+        """The finishing pass (:class:`NeighbourParams`): scan i's segments against scan j's
+        for every neighbour pair (solved in batches, :func:`.correction.correct_batch`); the
+        good matches become robust edges with their own covariance, and the scan-to-map
+        steps' edges are down-weighted.  Returns the edges added."""
+        NP = self.params.neighbours
+        if len(self.scans) != self.count or self.count < 2:
+            return 0
+        X = self.poses
+        pairs = self.neighbour_pairs()
+        g = self.graph
+        added = 0
+        f_t, f_r = NP.floor
+        floor = np.diag([f_t ** 2, f_t ** 2, f_r ** 2])
+        new_edges = []
+        for c0 in range(0, len(pairs), NP.chunk):
+            j, i = pairs[c0:c0 + NP.chunk].T
+            src_a, src_b = _pad([self.scans[k] for k in i], 0.0)
+            dst_a, dst_b = _pad([self.scans[k] for k in j], 1e6)  # padding never matches
+            res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), relative(X[j], X[i]),
+                                NP.prior_step, NP.correction)
+            std = np.sqrt(np.linalg.eigvalsh(res.cov[:, :2, :2])[:, -1])
+            ok = (std <= NP.max_std) & (res.matched_fraction >= NP.min_matched)
+            for k in np.nonzero(ok)[0]:
+                new_edges.append((int(j[k]), int(i[k]), res.pose[k],
+                                  np.linalg.inv(res.cov[k] + floor)))
+        if not new_edges:
+            return 0
+        if self._neighbours_from is None:
+            self._neighbours_from = len(g.ei)
+            for e in range(len(g.ei)):
+                if not g.loop[e]:
+                    g.info[e] = g.info[e] * NP.sequential_weight
+        # a later round's edges replace the previous round's (appended last, after all others)
+        for name in ("ei", "ej", "z", "info", "loop"):
+            setattr(g, name, getattr(g, name)[:self._neighbours_from])
+        for j, i, z, info in new_edges:
+            g.add_edge(j, i, z, info, loop=True)
+            added += 1
+        self.neighbour_edges = added
+        return added
 
     def refine(self) -> None:
         """Align each scan's own segments (kept as contributions) with the whole map, then

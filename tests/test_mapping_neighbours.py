@@ -1,0 +1,80 @@
+"""The mapper's finishing pass: scan-to-scan edges between neighbouring scans."""
+
+from __future__ import annotations
+
+import numpy as np
+from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.correction import CorrectionParams, correct_batch, correct_pose
+from cgamap.mapping.matching import LineIndex
+from cgamap.mapping.odometry import add_odometry_noise, compose_pose2d, relative
+from cgamap.mapping.segments import extract_segments
+from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams, _pad
+from synth2d import scan, world
+
+ROOM = world([(0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2, 4.5, 2)])
+
+
+def _segs(w, pose, seed=0):
+    s = scan(w, pose, n=361, sigma=0.005, seed=seed)
+    return extract_segments(s.ranges, s.angle_min, s.angle_increment)
+
+
+def test_correct_batch_recovers_known_motions_and_matches_correct_pose():
+    rng = np.random.default_rng(3)
+    poses = [np.array([2.0 + rng.uniform(0, 3), 1.0 + rng.uniform(0, 1), rng.uniform(-3, 3)])
+             for _ in range(6)]
+    ref = np.array([1.5, 3.0, -0.4])
+    dst = _segs(ROOM, ref, seed=99)
+    src = [_segs(ROOM, p, seed=k) for k, p in enumerate(poses)]
+    truth = relative(ref[None], np.array(poses))
+    guess = truth + rng.normal(0, [0.08, 0.08, 0.03], (6, 3))
+    A, B = _pad([(s.a, s.b) for s in src], 0.0)
+    Da, Db = _pad([(dst.a, dst.b)] * 6, 1e6)
+    params = CorrectionParams(gates=(0.3, 0.2, 0.12, 0.08, 0.06),
+                              angle_gates_deg=(10.0, 7.0, 5.0, 3.0, 2.5))
+    # a weak prior (as after a 20 m step): the data decide
+    res = correct_batch(A, B, LineIndex.of(Da, Db), guess, 20.0, params)
+    err = res.pose - truth
+    assert np.abs(err[:, :2]).max() < 0.01 and np.abs(err[:, 2]).max() < np.deg2rad(0.3)
+    assert (res.matched_fraction > 0.4).all()  # the rest: walls the reference scan cannot see
+    # the one-pair function is the same solver
+    for k in range(6):
+        one = correct_pose(src[k], dst.a, dst.b, guess[k], 20.0, params)
+        assert np.allclose(one.pose, res.pose[k], atol=1e-6)
+
+
+def test_neighbour_pairs_are_spatial_and_sequential():
+    m = Mapper(MapperParams(neighbours=NeighbourParams(radius=1.0, previous=2)))
+    # a path out and back: node 6 returns next to node 0
+    path = [(0, 0), (2, 0), (4, 0), (6, 0), (4, 0.3), (2, 0.3), (0.2, 0.3)]
+    for x, y in path:
+        m.graph.add_node(np.array([x, y, 0.0]))
+        m.scans.append((np.zeros((3, 2)), np.ones((3, 2))))
+    pairs = {tuple(p) for p in m.neighbour_pairs().tolist()}
+    assert {(0, 1), (1, 2), (0, 2), (5, 6), (4, 6)} <= pairs  # predecessors
+    assert {(2, 4), (1, 5), (0, 6)} <= pairs                  # revisits within 1 m
+    assert (0, 3) not in pairs and (3, 6) not in pairs
+
+
+def test_neighbour_pass_improves_a_noisy_run():
+    """A lap of the simulated loop twice, high odometry noise: the finishing pass must not
+    make the trajectory worse, and it adds one edge per neighbour pair it can match."""
+    w = get_world("loop")
+    t = np.arange(0, 2 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=2)
+    errs = {}
+    for on in (False, True):
+        m = Mapper(MapperParams(neighbours=NeighbourParams(enabled=on)), initial_pose=odo[0])
+        for s, o in zip(scans, odo, strict=True):
+            m.step(s.ranges, s.angle_min, s.angle_increment, o)
+        est = m.finish()
+        # rigid-align on the first pose (the map frame is the first odometry pose)
+        T = compose_pose2d(truth[0], relative(est[0], np.zeros(3)))
+        al = compose_pose2d(T, est)
+        errs[on] = float(np.sqrt(np.mean(np.sum((al[:, :2] - truth[:, :2]) ** 2, -1))))
+        if on:
+            assert m.neighbour_edges > len(scans)  # more than one neighbour per scan
+    assert errs[True] <= errs[False] * 1.05 + 0.005, errs
+    assert errs[True] < 0.1
