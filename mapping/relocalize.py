@@ -518,7 +518,14 @@ def _crossings(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
         so = nx * (ox[h, 0, 0] - ax) + ny * (oy[h, 0, 0] - ay)
         se = nx * (ex - ax) + ny * (ey - ay)
         m = P.cross_margin
-        crossed = (np.sign(so) != np.sign(se)) & (np.abs(so) > m) & (np.abs(se) > m)
+        # where the beam meets the wall's line must lie on the segment (a beam passing
+        # just past a segment's end crosses nothing)
+        lam = so / np.where(so != se, so - se, 1.0)
+        ix = ox[h, 0, 0] - field.a[sid, 0] + lam * (ex - ox[h, 0, 0])
+        iy = oy[h, 0, 0] - field.a[sid, 1] + lam * (ey - oy[h, 0, 0])
+        along = field.u[sid, 0] * ix + field.u[sid, 1] * iy
+        crossed = (np.sign(so) != np.sign(se)) & (np.abs(so) > m) & (np.abs(se) > m) & (
+            along > 0.0) & (along < field.seg_len[sid])
         hit[h[crossed], b[crossed]] = True
     return hit.mean(-1)
 
