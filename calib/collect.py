@@ -205,7 +205,12 @@ class HardwareSource:
         config = {"calibration": intrinsics} if intrinsics else {}
         self.joints = HeadJoints(pantilt_url, settle)
         try:
-            self.camera = open_grabber(model, device, config)
+            if model == "synthetic":    # the simulator's camera: no driver imports drivers.sim
+                from cgamap.drivers.sim.stereo_render import open_synthetic
+
+                self.camera = open_synthetic(device, **config)
+            else:
+                self.camera = open_grabber(model, device, config)
             self.camera.open()
         except (ValueError, OSError, RuntimeError, ImportError) as exc:
             self.joints.close()

@@ -19,19 +19,7 @@ MAX_DISPARITIES = 1024
 MAX_BLOCK = 51
 
 
-def _synthetic(device: str | None, **config):
-    from cgamap.drivers.sim.stereo_render import open_synthetic
-
-    return open_synthetic(device, **config)
-
-
 def register(sub: argparse._SubParsersAction) -> None:
-    from cgamap.drivers.stereo import register_backend
-
-    # The CLI plugs the simulator's camera into the drivers' backend table (no driver imports
-    # the simulator): every command that opens a grabber by name gets it (cgamap stereo,
-    # calib collect --camera synthetic://WORLD).  Imported on first use.
-    register_backend("synthetic", _synthetic)
     p = sub.add_parser("stereo", help="grab stereo frames and write images, disparity, points")
     p.add_argument("--model", required=True,
                    choices=["depthai", "opencv", "synthetic", "replay"],
@@ -69,6 +57,10 @@ def _grabber(args: argparse.Namespace):
     if args.model == "synthetic":
         config["seed"] = 0
     try:
+        if args.model == "synthetic":   # the simulator's camera, not a driver backend
+            from cgamap.drivers.sim.stereo_render import open_synthetic
+
+            return open_synthetic(args.device, **config)
         return open_grabber(args.model, args.device, config)
     except (ValueError, FileNotFoundError, OSError) as exc:
         raise UsageError(f"stereo: {exc}") from None
