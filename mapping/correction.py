@@ -102,6 +102,7 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
     q = np.concatenate([seg_a + (0.5 - _G) * (seg_b - seg_a),
                         seg_a + (0.5 + _G) * (seg_b - seg_a)], axis=1)
     wq = np.concatenate([L, L], axis=1) * 0.5
+    rows = np.arange(n_pairs)[:, None]
     if k and index.a.shape[-2]:
         for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
             R = _rot_t(x[:, 2])
@@ -116,8 +117,8 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
             jm = np.concatenate([best, best], axis=1)
             use = np.concatenate([has, has], axis=1)
             qg = q @ R + t
-            n = np.take_along_axis(index.n, jm[..., None], axis=-2)
-            e = (n * qg).sum(-1) - np.take_along_axis(index.c, jm, axis=-1)
+            n = index.n[rows, jm]
+            e = (n * qg).sum(-1) - index.c[rows, jm]
             rel = qg - t
             J = np.empty(n.shape[:-1] + (3,))
             J[..., :2] = n

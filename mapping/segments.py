@@ -105,11 +105,19 @@ def tls_from_moments(n, centroid: np.ndarray, scatter: np.ndarray) -> tuple:
     return d, lam_min / np.maximum(n, 1), lam_max
 
 
-def _moments(p: np.ndarray, starts: np.ndarray, ends: np.ndarray):
-    """Counts, centroids and centred scatter matrices of p[starts[i]:ends[i]]."""
-    n = (ends - starts).astype(float)
-    cs = np.concatenate([np.zeros((1, 5)), np.cumsum(
+def _prefix_moments(p: np.ndarray) -> np.ndarray:
+    """Running sums of x, y, x^2, xy, y^2 (with a leading zero row): any run's moments are
+    two lookups."""
+    return np.concatenate([np.zeros((1, 5)), np.cumsum(
         np.column_stack([p, p[:, 0] ** 2, p[:, 0] * p[:, 1], p[:, 1] ** 2]), axis=0)])
+
+
+def _moments(p: np.ndarray, starts: np.ndarray, ends: np.ndarray,
+             cs: np.ndarray | None = None):
+    """Counts, centroids and centred scatter matrices of p[starts[i]:ends[i]] (``cs``: the
+    points' :func:`_prefix_moments`, when already at hand)."""
+    n = (ends - starts).astype(float)
+    cs = _prefix_moments(p) if cs is None else cs
     sums = cs[ends] - cs[starts]
     c = sums[:, :2] / n[:, None]
     sxx = sums[:, 2] - n * c[:, 0] ** 2
@@ -176,12 +184,13 @@ def _split(p: np.ndarray, rng: np.ndarray, starts: np.ndarray, ends: np.ndarray,
 def _merge(p, starts, ends, params: SegmentParams, is_break: np.ndarray):
     """Greedy merge of adjacent collinear segments (joint TLS residual under threshold);
     never across a gap break."""
+    cs = _prefix_moments(p)
     while len(starts) > 1:
         s2, e2 = starts[:-1], ends[1:]
         contiguous = (ends[:-1] == starts[1:]) & ~is_break[starts[1:]]
-        n, c, S = _moments(p, s2, e2)
+        n, c, S = _moments(p, s2, e2, cs)
         _, ms, _ = tls_from_moments(n, c, S)
-        na, ca, Sa = _moments(p, starts, ends)
+        na, ca, Sa = _moments(p, starts, ends, cs)
         da, _, _ = tls_from_moments(na, ca, Sa)
         cosang = np.abs(np.sum(da[:-1] * da[1:], axis=-1))
         ok = contiguous & (np.sqrt(ms) < params.merge_residual) & (
