@@ -92,11 +92,15 @@ class Mapper2D:
     pose re-anchors the mapper: its next scan starts a new chain at the given pose."""
 
     def __init__(self, mount: tuple[float, float, float] | None, params: dict):
-        from cgamap.mapping.slam2d import Mapper, MapperParams
+        from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
 
         kw = {k: v for k, v in params.items() if k in {f.name for f in fields(MapperParams)}
               and not is_dataclass(getattr(MapperParams, k, None))}
-        self._make = lambda pose: Mapper(MapperParams(mount=mount, **kw), initial_pose=pose)
+        # the neighbour pass belongs to a finished run (map build); a daemon never finishes,
+        # so it keeps no per-scan segments for it
+        self._make = lambda pose: Mapper(
+            MapperParams(mount=mount, neighbours=NeighbourParams(enabled=False), **kw),
+            initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
         self._pose = np.zeros(3)
 
