@@ -295,10 +295,10 @@ def _check_params(key: str, dev: dict) -> None:
     params, model = dev["params"], dev["model"]
     try:
         if dev["role"] == "laser" and model in ("lms2xx", "hokuyo", "cola"):
-            from cgamap.daemon.devices import LASER_CLASSES, _import, driver_url
+            from cgamap.daemon.devices import LASER_CLASSES, _import
 
             cls = _import(*LASER_CLASSES[model])
-            cls(driver_url(dev["url"]), dev["timeout"], reconnect=False, **params)
+            cls(dev["url"], dev["timeout"], reconnect=False, **params)
         elif model == "modbus-base":
             from cgamap.drivers.modbus_base import ModbusBaseConfig
 

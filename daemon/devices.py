@@ -30,19 +30,11 @@ def _import(module: str, name: str):
     return getattr(importlib.import_module(module), name)
 
 
-def driver_url(url: str) -> str:
-    """The drivers take ``serial:///dev/x?baud=N``: accept ``baudrate=`` from the config too."""
-    parts = urlsplit(url)
-    if parts.scheme != "serial" or "baudrate" not in parts.query:
-        return url
-    return url.replace("baudrate=", "baud=")
-
-
 class LaserSource:
     """A laser driver (LMS2xx, Hokuyo, CoLa) behind the supervisor's interface."""
 
     def __init__(self, model: str, url: str, timeout: float, params: dict):
-        self.model, self.url, self.timeout, self.params = model, driver_url(url), timeout, params
+        self.model, self.url, self.timeout, self.params = model, url, timeout, params
         self.driver = None
 
     @property
