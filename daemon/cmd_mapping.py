@@ -32,6 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="corrupt the log's odometry with this preset "
                         "(cgamap.mapping.odometry.ODOM_NOISE_PRESETS)")
     b.add_argument("--seed", type=int, default=0, help="seed of the odometry noise")
+    b.add_argument("--relations", metavar="FILE",
+                   help="relative-pose ground truth (Kümmerle et al. 2009 format, e.g. "
+                        "intel.relations): report the error over the relations whose two "
+                        "instants are scans of the log")
     b.add_argument("--no-loop-closure", action="store_true",
                    help="global-map matching only, no pose graph")
     b.add_argument("--lenient", action="store_true", help="skip malformed log lines")
@@ -88,6 +92,38 @@ def _odometry(scans) -> np.ndarray:
     return np.array(odo, dtype=float)
 
 
+def _read_relations(path: str) -> np.ndarray:
+    from cgamap.mapping.evaluation import load_relations
+
+    try:
+        return load_relations(path)
+    except OSError as exc:
+        raise UsageError(f"--relations: {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise UsageError(f"--relations: {exc}") from None
+
+
+def _relations_report(relations: np.ndarray, stamps: np.ndarray, poses: np.ndarray, scans,
+                      odometry: np.ndarray) -> dict:
+    """The estimate's error over the relations; the log's reference poses (when it has
+    them) and the odometry scored the same way, for scale: a reference that is itself SLAM
+    output is not ground truth."""
+    from cgamap.mapping.evaluation import relations_error
+
+    def rounded(d: dict) -> dict:
+        return {k: round(v, 4) if isinstance(v, float) else v for k, v in d.items()}
+
+    est = relations_error(stamps, poses, relations)
+    out = {"estimate": rounded(est)}
+    ref = [s.pose_ref for s in scans]
+    if all(r is not None for r in ref):
+        out["reference"] = rounded(relations_error(stamps, np.array(ref, float), relations,
+                                                   offset=est["clock_offset_s"]))
+    out["odometry"] = rounded(relations_error(stamps, odometry, relations,
+                                              offset=est["clock_offset_s"]))
+    return out
+
+
 def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
@@ -97,6 +133,7 @@ def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.slam2d import LoopParams, MapperParams
 
     scans, st = _read_log(args.log, args.lenient)
+    relations = _read_relations(args.relations) if args.relations else None
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -119,6 +156,8 @@ def run_build(args: argparse.Namespace) -> int:
                comments="", fmt=["%.6f", "%.4f", "%.4f", "%.5f"])
     report = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
               "skipped_lines": st.skipped, **res.report}
+    if relations is not None:
+        report["relations"] = _relations_report(relations, res.stamps, res.poses, scans, odo)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     if not args.quiet:
         keys = ("scans_processed", "segments", "ms_per_scan_median", "ate_trans_m",
