@@ -187,17 +187,7 @@ def _limits(text: str, what: str) -> tuple[float, float]:
 
 
 def _check_pantilt_args(args: argparse.Namespace) -> tuple[int, int]:
-    from urllib.parse import urlsplit
-
-    if args.device.startswith(("tcp://", "socket://")):
-        parts = urlsplit(args.device)
-        try:
-            port = parts.port
-        except ValueError:
-            port = None
-        if not parts.hostname or not port:
-            raise UsageError(f"pantilt: --device {args.device}: expected "
-                             f"{parts.scheme}://HOST:PORT")
+    # the --device URL is checked by PanTilt itself (parse_device_url), before the port opens
     pan_id, tilt_id = _pair(args.ids, "--ids", int)
     for servo_id in (pan_id, tilt_id):
         if not 0 <= servo_id <= 252:  # 253..255 are reserved / broadcast
