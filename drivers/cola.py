@@ -35,13 +35,12 @@ import re
 import struct
 import time
 from dataclasses import dataclass
-from urllib.parse import urlsplit
 
 import numpy as np
 
 from .laser import DeviceError, LaserDriver
 from .messages import ErrorCounters, LaserScan
-from .transport import Transport
+from .transport import DeviceUrlError, Transport, parse_device_url
 
 log = logging.getLogger(__name__)
 
@@ -119,14 +118,31 @@ def _printable(b: bytes) -> bool:
     return _NOT_PRINTABLE.search(b) is None
 
 
-def _with_default_port(url: str) -> str:
-    """``host`` or ``tcp://host`` → ``tcp://host:2111``."""
-    if "://" not in url:
-        url = "tcp://" + url
-    parts = urlsplit(url.removeprefix("spy+"))
-    if parts.scheme in ("tcp", "socket") and parts.port is None and parts.hostname:
-        url = url.replace(parts.netloc, f"{parts.netloc}:{DEFAULT_PORT}", 1)
-    return url
+_SPY_PREFIX = re.compile(r"(?:spy\+)*")
+# a TCP URL whose host has no port after it (the port goes at the end of the match)
+_HOST_WITHOUT_PORT = re.compile(r"(?:tcp|socket)://(?:\[[^\]]*\]|[^:/?#\[\]]+)(?=[/?#]|$)",
+                                re.IGNORECASE)
+
+
+def _with_default_port(url: str) -> tuple[str, int | None]:
+    """``host``, ``tcp://host`` (with ``spy+``, options) → ``tcp://host:2111``, and the URL's TCP
+    port.  A name without ``://`` is a host: CoLa runs on TCP here.  The URL is checked by
+    ``parse_device_url`` (a malformed port raises its one-line ``DeviceUrlError``, a
+    ValueError); a scheme the transport does not know is left for ``open`` to refuse."""
+    if url.startswith("spy://"):            # the older spelling of spy+, as open_transport
+        url = "spy+" + url[6:]
+    spy = _SPY_PREFIX.match(url).group()
+    rest = url[len(spy):]
+    if "://" not in rest:
+        rest = "tcp://" + rest
+    if m := _HOST_WITHOUT_PORT.match(rest):
+        rest = f"{rest[:m.end()]}:{DEFAULT_PORT}{rest[m.end():]}"
+    try:
+        return spy + rest, parse_device_url(spy + rest).port
+    except DeviceUrlError as exc:
+        if spy + rest == url:
+            raise
+        raise DeviceUrlError(f"{url}: read as {exc}") from None
 
 
 _HEX = frozenset(b"0123456789ABCDEFabcdef")
@@ -436,11 +452,15 @@ class ColaDriver(LaserDriver):
                  password: str = CLIENT_PASSWORD, ready_timeout: float = 5.0,
                  protocol: str = "auto", command_timeout: float = 1.0, **kw) -> None:
         if isinstance(device, str):
-            device = _with_default_port(device)
+            device, port = _with_default_port(device)
+        else:                       # an open transport: its URL says the port, if any
+            try:
+                port = parse_device_url(device.url).port
+            except DeviceUrlError:
+                port = None
         super().__init__(device, timeout, **kw)
         protocol = protocol.upper()
         if protocol == "AUTO":
-            port = urlsplit(self.url.removeprefix("spy+")).port
             protocol = "B" if port == 2112 else "A"
         if protocol not in ("A", "B"):
             raise ValueError(f"CoLa protocol must be 'A', 'B' or 'auto', not {protocol!r}")
