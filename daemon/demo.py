@@ -33,6 +33,7 @@ from cgamap.daemon import config as config_mod
 from cgamap.daemon.export import export
 from cgamap.daemon.server import request
 from cgamap.daemon.twins import Twin, start_twin, twin_available
+from cgamap.mapping.fileio import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 SIM_TWINS = {"hokuyo": "hokuyo", "lms2xx": "lms2xx", "modbus-base": "modbus-base",
@@ -186,7 +187,7 @@ def resolve_config(cfg_path: Path, twins: dict[str, Twin], out: Path, run_dir: P
         else:
             dev["enabled"] = False  # no twin for it in this build
     path = out / "sim-resolved.yaml"
-    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(raw, sort_keys=False))
     cfg = config_mod.load(path)
     return path, cfg
 
@@ -240,7 +241,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
             for d in raw["devices"].values():
                 if d.get("role") == "camera":
                     d["enabled"] = False
-            resolved.write_text(yaml.safe_dump(raw, sort_keys=False))
+            write_text_atomic(resolved, yaml.safe_dump(raw, sort_keys=False))
         sock = config_mod.resolve_paths(cfg)[1]
         # drive from now on: the laser twin's robot moves on its own clock, so the base must
         # move with it before the daemon reads either
@@ -366,7 +367,7 @@ def process_cpu_s(pid: int) -> float | None:
 
 
 def write_report(out: Path, report: dict) -> None:
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=float))
+    write_text_atomic(out / "report.json", json.dumps(report, indent=1, default=float))
     t = report.get("truth", {})
     lines = [
         "# cgamap demo report", "",
@@ -401,4 +402,4 @@ def write_report(out: Path, report: dict) -> None:
               f"{report.get('daemon_cpu_s')} s ({report.get('daemon_cpu_fraction')} of one "
               "core).", ""]
     lines += ["Files: " + ", ".join(Path(f).name for f in report.get("files", [])), ""]
-    (out / "report.md").write_text("\n".join(lines))
+    write_text_atomic(out / "report.md", "\n".join(lines))

@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from cgamap.mapping.fileio import write_text_atomic
 
 FORMATS = ("png", "pgm", "ply", "json")
 
@@ -64,7 +65,8 @@ def export_ply(map_reply: dict, path: Path, wall_height: float = 2.5) -> list[Pa
     vert = "\n".join(f"{x:.4f} {y:.4f} {z:.4f}" for x, y, z in v)
     faces = "\n".join(f"4 {q[0]} {q[1]} {q[2]} {q[3]} {r} {g} {b}"
                       for q, (r, g, b) in zip(f, c, strict=True))
-    path.write_text(head + vert + ("\n" if len(v) else "") + faces + ("\n" if len(f) else ""))
+    write_text_atomic(path, head + vert + ("\n" if len(v) else "") + faces
+                      + ("\n" if len(f) else ""))
     return [path]
 
 
@@ -74,11 +76,12 @@ def render_3d_png(map_reply: dict, path: Path, size: tuple[int, int] = (960, 640
     """An oblique view of the 3D map: virtual walls (grey) and camera planes (blue), painted
     far to near (orthographic projection, Lambert shading)."""
     import cv2
+    from cgamap.mapping.render import write_image_atomic
 
     v, f, c = ply_mesh(map_reply, wall_height)
     img = np.full((size[1], size[0], 3), 255, np.uint8)
     if not len(f):
-        cv2.imwrite(str(path), img)
+        write_image_atomic(path, img, "PNG")
         return [path]
     az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
     fwd = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
@@ -106,8 +109,7 @@ def render_3d_png(map_reply: dict, path: Path, size: tuple[int, int] = (960, 640
         alpha = 0.9 if c[i][0] == c[i][1] else 0.55
         img[y0:y1, x0:x1] = cv2.addWeighted(layer, alpha, roi, 1 - alpha, 0)
         cv2.polylines(img, [poly], True, (60, 60, 60), 1, cv2.LINE_AA)
-    if not cv2.imwrite(str(path), img):
-        raise OSError(f"{path}: could not write PNG")
+    write_image_atomic(path, img, "PNG")
     return [path]
 
 
@@ -134,6 +136,6 @@ def export(map_reply: dict, fmt: str, path: Path, **kw) -> list[Path]:
     if fmt == "ply":
         return export_ply(map_reply, path)
     if fmt == "json":
-        path.write_text(json.dumps(map_reply, indent=1))
+        write_text_atomic(path, json.dumps(map_reply, indent=1))
         return [path]
     raise ValueError(f"unknown format {fmt!r} (one of {', '.join(FORMATS)})")

@@ -273,7 +273,7 @@ class PlaneMap:
                 "property float z", "property uchar red", "property uchar green",
                 "property uchar blue", f"element face {len(self.planes)}",
                 "property list uchar int vertex_indices", "end_header"]
-        Path(path).write_text("\n".join(head + lines + faces) + "\n")
+        write_text_atomic(path, "\n".join(head + lines + faces) + "\n")
 
     def hough_image(self, size: tuple[int, int] = (720, 400)) -> np.ndarray:
         return hough_space_image(self.planes, size)

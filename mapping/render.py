@@ -9,10 +9,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .fileio import write_bytes_atomic, write_text_atomic
 from .linemap import LineMap
 
 log = logging.getLogger(__name__)
 MAX_SIDE_PX = 10000  # 300 MB for an RGB image at the cap; beyond it the resolution coarsens
+
+
+def write_image_atomic(path: str | Path, img: np.ndarray, kind: str = "image") -> None:
+    """Encode ``img`` by the file name's extension (``cv2.imencode``) and write it atomically
+    (``fileio.write_bytes_atomic``): a failed or interrupted export leaves the previous picture
+    whole.  Raises OSError naming the file when OpenCV cannot encode it."""
+    ok, buf = cv2.imencode(Path(path).suffix, img)
+    if not ok:
+        raise OSError(f"{path}: could not write {kind}")
+    write_bytes_atomic(path, buf.tobytes())
 
 
 def _frame(points: np.ndarray, resolution: float, border: float):
@@ -69,8 +80,7 @@ def render_png(lmap: LineMap, path: str | Path, trajectory: np.ndarray | None = 
         for p, q in zip(pa, pb, strict=True):  # one draw call per segment (segments, not points)
             cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), (0, 0, 0), 2,
                      cv2.LINE_AA)
-    if not cv2.imwrite(str(path), img):
-        raise OSError(f"{path}: could not write PNG")
+    write_image_atomic(path, img, "PNG")
 
 
 def export_occupancy(lmap: LineMap, stem: str | Path, resolution: float = 0.05,
@@ -90,11 +100,10 @@ def export_occupancy(lmap: LineMap, stem: str | Path, resolution: float = 0.05,
             cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), 0, 1)
     pgm = stem.with_suffix(".pgm")
     yml = stem.with_suffix(".yaml")
-    if not cv2.imwrite(str(pgm), img):
-        raise OSError(f"{pgm}: could not write PGM")
-    yml.write_text(
-        f"image: {pgm.name}\nmode: trinary\nresolution: {resolution}\n"
-        f"origin: [{lo[0]:.4f}, {lo[1]:.4f}, 0.0]\nnegate: 0\n"
-        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
-    )
+    # each file atomic; the YAML last, so a map_server never reads a YAML naming a
+    # half-written image
+    write_image_atomic(pgm, img, "PGM")
+    write_text_atomic(yml, f"image: {pgm.name}\nmode: trinary\nresolution: {resolution}\n"
+                           f"origin: [{lo[0]:.4f}, {lo[1]:.4f}, 0.0]\nnegate: 0\n"
+                           "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
     return pgm, yml
