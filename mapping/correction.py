@@ -159,13 +159,25 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
         return unmatched
     # map segments anywhere near the scan under the widest gate; later passes look only there
     ga, gb = _transform(seg_l.a, pred), _transform(seg_l.b, pred)
-    index = map_index if map_index is not None else LineIndex.of(map_a, map_b)
-    ok0, _ = match_index(ga, gb, index, np.deg2rad(max(params.angle_gates_deg)),
-                         max(params.gates) * 1.5)
-    near = np.nonzero(ok0.any(axis=0))[0]
+    wide = max(params.gates) * 1.5
+    # only map segments whose eq. (15) sphere can reach the scan's: centre within the sum of
+    # the radii (+ the margin on both) of the scan's bounding box
+    if map_index is not None:
+        centre, half = map_index.centre, map_index.half
+    else:
+        centre, half = 0.5 * (map_a + map_b), 0.5 * np.linalg.norm(map_b - map_a, axis=-1)
+    lo = np.minimum(ga, gb).min(axis=0)
+    hi = np.maximum(ga, gb).max(axis=0)
+    reach = 0.5 * float(L.max()) + half + 2.0 * wide
+    box = np.nonzero(np.all((centre >= lo - reach[:, None]) & (centre <= hi + reach[:, None]),
+                            axis=1))[0]
+    index = (map_index.subset(box) if map_index is not None
+             else LineIndex.of(map_a[box], map_b[box]))
+    ok0, _ = match_index(ga, gb, index, np.deg2rad(max(params.angle_gates_deg)), wide)
+    near = box[np.nonzero(ok0.any(axis=0))[0]]
     if not len(near):
         return unmatched
-    sub = index.subset(near)
+    sub = index.subset(np.searchsorted(box, near))
     res = correct_batch(seg_l.a[None], seg_l.b[None],
                         LineIndex(*(v[None] for v in vars(sub).values())), pred[None], step,
                         params)

@@ -164,11 +164,11 @@ def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
                                  params.merge_angle, params.merge_dist, params.merge_margin)
         ii, jj = np.nonzero(ok)
         jj = cand[jj]
-    new = np.setdiff1d(np.arange(k), ii)
+    is_new = np.ones(k, bool)  # observations that start segments of their own
+    is_new[ii] = False
     target = np.full(k, -1)
     remove: list[int] = []
     redirect_pairs: list[tuple[int, int]] = []
-    unfused: list[int] = []
     comps = _components(ii, jj + k, k + len(lmap))
     if comps:
         member = np.concatenate([np.asarray(c) for c in comps])
@@ -199,11 +199,11 @@ def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
         lmap.last_seen[J] = stamp
         ok_o = good[go]
         target[o[ok_o]] = j0[go[ok_o]]
-        unfused.extend(o[~ok_o].tolist())
+        is_new[o[~ok_o]] = True
         rest = good[gm] & (mi != j0[gm])
         remove.extend(mi[rest].tolist())
         redirect_pairs.extend(zip(mi[rest].tolist(), j0[gm[rest]].tolist(), strict=True))
-    new = np.union1d(new, np.array(unfused, dtype=int))
+    new = np.nonzero(is_new)[0]
     start = len(lmap)
     lmap.append(seg_g.subset(new), stamp)
     target[new] = start + np.arange(len(new))
