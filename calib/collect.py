@@ -18,9 +18,9 @@ import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
+from cgamap.mapping.fileio import write_text_atomic
 
 from .pairs import PairSet, save_pairs
 from .sim import SimRig, default_rig, pan_tilt_head_pose
@@ -328,7 +328,7 @@ def run_collect(args: argparse.Namespace) -> int:
     try:
         save_pairs(args.out, report.pairs)
         if args.sim and args.truth:
-            Path(args.truth).write_text(json.dumps(
+            write_text_atomic(args.truth, json.dumps(
                 {"head_T_cam": rig.head_T_cam.tolist(),
                  "axis_point": rig.axis_point.tolist(),
                  "base_T_target": rig.base_T_target.tolist()}, indent=1) + "\n")
