@@ -11,14 +11,22 @@
    n_g . T = c_g - s c_l (s = +-1, the normals' relative sign).  Two scan lines of different
    directions paired with two map lines of the same directions fix T; all such intersections
    vote in a coarse grid over the map, and the best cells are the translation hypotheses.
-4. Verification: the fraction of scan points within ``inlier_dist`` of a map segment (a
-   distance field of the map, one lookup per point), then a refinement of the best few with
-   the point-to-line correction of :mod:`.correction`, and a ranked list.  "Not found" when
-   the best score is under ``min_score``.  Ranking is by the soft fit of the points (each
-   counts 1 - (d / inlier)^2), which tells the tighter of two symmetric places apart.
+4. Verification (``point_refine``, the default): the best distinct coarse candidates are
+   pulled in by a batched point-to-segment ICP (every scan point against the map segment
+   nearest to it, read from a nearest-segment grid of the distance field; Cauchy weights;
+   gates that shrink), re-ranked by the soft fit of the points (each counts
+   1 - (d / inlier)^2), and the best dozen refined on all points.  The ranking is the soft
+   fit less ``cross_weight`` times the fraction of beams that would pass through a mapped
+   wall (free space the hypothesis contradicts; a wall counts only when its line separates
+   the laser from the beam's end by ``cross_margin``, so grazing beams and small map error do
+   not), the inlier count breaking ties.  "Not found" when the best inlier fraction is under
+   ``min_score``.  With ``point_refine`` off, the older path: the segment correction of
+   :mod:`.correction` and a grid polish on the soft score.
 3b. Cluttered scans with one or two short lines give no line-pair intersection near the truth:
    a correlative sweep (the scan points against the map's near-wall mask, on a coarse grid,
-   per rotation hypothesis) adds its best cells as further translation hypotheses.
+   per rotation hypothesis) adds its best cells as further translation hypotheses; and when
+   no hypothesis fits better than ``fallback_fit`` (the lines named no right rotation: the
+   scan's segments are furniture at odd angles), the sweep runs over all rotations.
 
 Symmetric places (corridors, identical rooms) give several hypotheses with similar scores; all
 are returned, ranked.
