@@ -88,7 +88,7 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
     x = pred.copy()
     n_pairs, k = seg_a.shape[:2]
     L = np.linalg.norm(seg_b - seg_a, axis=-1)
-    step = np.broadcast_to(np.asarray(step, dtype=float), (n_pairs,))
+    step = np.full(n_pairs, step, dtype=float) if np.isscalar(step) else np.asarray(step, float)
     st = params.prior_trans + params.prior_trans_per_m * step
     sr = params.prior_rot + params.prior_rot_per_m * step
     w_prior = np.stack([st ** -2, st ** -2, sr ** -2], -1)

@@ -17,6 +17,7 @@ not grow with the distance from the origin).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,9 +51,9 @@ def sphere_relation(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
 def line_normals(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals n (..., k, 2) and offsets c (..., k) with n.x = c on the line a-b."""
     d = b - a
-    d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+    d = d / np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-12)[..., None]
     n = np.stack([-d[..., 1], d[..., 0]], axis=-1)
-    return n, np.sum(n * a, axis=-1)
+    return n, n[..., 0] * a[..., 0] + n[..., 1] * a[..., 1]
 
 
 @dataclass
@@ -71,7 +72,8 @@ class LineIndex:
     @classmethod
     def of(cls, a: np.ndarray, b: np.ndarray) -> LineIndex:
         n, c = line_normals(a, b)
-        return cls(a, b, 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=-1), n, c)
+        d = b - a
+        return cls(a, b, 0.5 * (a + b), 0.5 * np.hypot(d[..., 0], d[..., 1]), n, c)
 
     def subset(self, idx) -> LineIndex:
         return LineIndex(self.a[idx], self.b[idx], self.centre[idx], self.half[idx],
@@ -98,11 +100,11 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     (..., k1, k2), each batch element matched only against its own segment set."""
     margin = max_dist if margin is None else margin
     k1, k2 = a1.shape[-2], idx.a.shape[-2]
-    shape = np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2]) + (k1, k2)
     if k1 == 0 or k2 == 0:
+        shape = np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2]) + (k1, k2)
         return np.zeros(shape, bool), np.zeros(shape)
     d1 = b1 - a1
-    L1 = np.linalg.norm(d1, axis=-1)
+    L1 = np.hypot(d1[..., 0], d1[..., 1])
     # eq. (15) through the inner products of the normalised IPNS sphere vectors
     # s_i = up(c_i) - r_i^2/2 einf: s_i . s_i = r_i^2 and s1 . s2 = (r1^2 + r2^2 - d^2) / 2
     # (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 without forming the
@@ -116,8 +118,8 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     d2 = dx * dx + dy * dy
     R1, R2 = r1 * r1, r2 * r2
     s12 = 0.5 * (R1 + R2 - d2)
-    near = (s12 * s12 - R1 * R2 <= 1e-12 * np.maximum(1.0, R1 * R2)) | (
-        d2 <= (r1 - r2) ** 2)
+    RR = R1 * R2
+    near = (s12 * s12 - RR <= 1e-12 * np.maximum(1.0, RR)) | (d2 <= (r1 - r2) ** 2)
     d1 = d1 / np.maximum(L1, 1e-12)[..., None]
     # |sin| of the undirected angle between the lines: d1 . n2 (n2 is d2 turned by 90 deg)
     nT = np.swapaxes(idx.n, -1, -2)
@@ -125,6 +127,6 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     sin_ang = np.abs(d1 @ nT)
     ada = np.abs(a1 @ nT - cT)
     adb = np.abs(b1 @ nT - cT)
-    ok = near & (sin_ang < np.sin(max_angle)) & (ada < max_dist) & (adb < max_dist)
+    ok = near & (sin_ang < math.sin(max_angle)) & (ada < max_dist) & (adb < max_dist)
     cost = 0.5 * (ada + adb) + 0.5 * sin_ang
     return ok, np.where(ok, cost, np.inf)
