@@ -98,6 +98,9 @@ class LineMap:
         self.last_seen = np.concatenate([self.last_seen, np.full(k, stamp)])
 
 
+_IMAX, _IMIN = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+
+
 def fuse_groups(group: np.ndarray, m: int, n: np.ndarray, centroid: np.ndarray,
                 scatter: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple:
     """:func:`fuse` for many groups at once: members with ``group`` label g in [0, m) form
@@ -192,7 +195,7 @@ def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
         lmap.a[J], lmap.b[J], lmap.n_pts[J] = pa[g_ok], pb[g_ok], N[g_ok]
         lmap.centroid[J], lmap.scatter[J] = C[g_ok], Sm[g_ok]
         n_obs = np.bincount(gm, lmap.n_obs[mi], len(comps))
-        first = np.full(len(comps), np.iinfo(np.int64).max)
+        first = np.full(len(comps), _IMAX)
         np.minimum.at(first, gm, lmap.created[mi])
         lmap.n_obs[J] = n_obs[g_ok].astype(int) + 1
         lmap.created[J] = first[g_ok]
@@ -279,8 +282,8 @@ def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = N
     g = np.nonzero(good)[0]
     J = j0[g]
     n_obs = np.bincount(group, lmap.n_obs[member], len(comps)).astype(int)
-    first = np.full(len(comps), np.iinfo(np.int64).max)
-    last = np.full(len(comps), np.iinfo(np.int64).min)
+    first = np.full(len(comps), _IMAX)
+    last = np.full(len(comps), _IMIN)
     np.minimum.at(first, group, lmap.created[member])
     np.maximum.at(last, group, lmap.last_seen[member])
     lmap.a[J], lmap.b[J], lmap.n_pts[J], lmap.centroid[J], lmap.scatter[J] = \
