@@ -175,13 +175,26 @@ class DistanceField:
         """(pad, near-wall mask ``dist < thr`` with ``pad`` false pixels on every side),
         cached: shifted slices of it read points up to ``pad_m`` metres from the laser."""
         key = (round(thr, 4), pad_m)
-        if getattr(self, "_mask_key", None) != key:
+        cache = self.__dict__.setdefault("_masks", {})   # the sweep and its fallback
+        if key not in cache:
             pad = int(np.ceil(pad_m / self.res))
             m = np.zeros((self.dist.shape[0] + 2 * pad + 1, self.dist.shape[1] + 2 * pad + 1),
                          np.uint8)
             m[pad: pad + self.dist.shape[0], pad: pad + self.dist.shape[1]] = self.dist < thr
-            self._mask_key, self._mask = key, (pad, m)
-        return self._mask
+            cache[key] = (pad, m)
+        return cache[key]
+
+    def phase_masks(self, thr: float, step: int) -> tuple[int, list[np.ndarray]]:
+        """(pad, the padded near-wall mask split into its step x step sampling phases):
+        ``phases[py * step + px][j, i]`` is ``mask[py + j * step, px + i * step]``, so a
+        strided read of the mask becomes a contiguous slice (cached, as int16 to add)."""
+        key = (round(thr, 4), step)
+        cache = self.__dict__.setdefault("_phases", {})
+        if key not in cache:
+            pad, m = self.padded_mask(thr)
+            cache[key] = (pad, [np.ascontiguousarray(m[py::step, px::step], np.int16)
+                                for py in range(step) for px in range(step)])
+        return cache[key]
 
     def lookup(self, p: np.ndarray) -> np.ndarray:
         """Distances for points (..., 2); points off the grid count as far."""
@@ -546,7 +559,7 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
     score of any pose inside it.  Cluttered scans with one or two short lines need this."""
     step = max(1, int(round(P.sweep_grid / field.res)))
     thr = P.coarse_dist + 0.71 * step * field.res
-    pad, mask = field.padded_mask(thr)
+    pad, phases = field.phase_masks(thr, step)
     ny, nx = (np.array(field.dist.shape) + step - 1) // step
     if len(pts) > P.sweep_points:
         pts = pts[np.linspace(0, len(pts) - 1, P.sweep_points).astype(int)]
@@ -557,7 +570,9 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
         keep = np.all((off >= 0) & (off <= 2 * pad), axis=-1)
         acc = np.zeros((ny, nx), np.int16)
         for ox, oy in off[keep]:
-            acc += mask[oy: oy + ny * step: step, ox: ox + nx * step: step]
+            # mask[oy::step, ox::step] as a contiguous slice of the matching phase
+            ph = phases[(oy % step) * step + ox % step]
+            acc += ph[oy // step: oy // step + ny, ox // step: ox // step + nx]
         k = min(P.sweep_cells, acc.size)
         best = np.argpartition(-acc.ravel(), k - 1)[:k]
         iy, ix = np.divmod(best, nx)
