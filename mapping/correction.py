@@ -72,6 +72,8 @@ class BatchCorrection:
     matched_fraction: np.ndarray  # (P,) share of the segments' length matched
     rms: np.ndarray               # (P,) RMS point-to-line residual of the matches (m)
     matches: np.ndarray           # (P, k) map segment per scan segment, -1 unmatched
+    info_data: np.ndarray | None = None  # (P, 3, 3) information from the matches alone
+    # (the prior's taken out): ~0 along what the lines leave free, e.g. along a corridor
 
 
 def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predicted,
@@ -138,7 +140,7 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
     wu = np.where(use, wq, 0.0)
     rms = np.sqrt(np.sum(wu * e ** 2, axis=1) / np.maximum(np.sum(wu, axis=1), 1e-12))
     return BatchCorrection(x, np.linalg.inv(H), matched / np.maximum(total, 1e-12), rms,
-                           matches)
+                           matches, H - H0)
 
 
 def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicted,

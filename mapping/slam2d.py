@@ -90,15 +90,17 @@ class NeighbourParams:
     enabled: bool = True
     radius: float = 2.5           # pairs of scans whose positions are this close (m) ...
     previous: int = 3             # ... and each scan with this many before it
-    max_std: float = 0.06         # accept: translation std in every direction (m)
-    min_matched: float = 0.5      # ... and this share of the scan's segment length matched
+    max_std: float = 0.1          # accept: translation std in the best-known direction (m)
+    min_matched: float = 0.3      # ... and this share of the scan's segment length matched
     floor: tuple[float, float] = (0.01, 0.0033)  # added to each edge's std (m, rad)
-    sequential_weight: float = 0.05  # the scan-to-map steps' edges then count this much
+    sequential_weight: float = 0.3   # the scan-to-map steps' edges then count this much
     rounds: int = 2               # match again from the re-optimised poses (2: measured best)
     prior_step: float = 0.5       # the current estimate as prior, as wide as after this step
     chunk: int = 512              # pairs solved together (memory ~ chunk * segments^2)
+    # wide first gates: a region the online closures left bent by decimetres is pulled in
     correction: CorrectionParams = field(default_factory=lambda: CorrectionParams(
-        gates=(0.3, 0.2, 0.12, 0.08, 0.06), angle_gates_deg=(10.0, 7.0, 5.0, 3.0, 2.5)))
+        gates=(0.6, 0.4, 0.25, 0.15, 0.1, 0.06),
+        angle_gates_deg=(15.0, 10.0, 7.0, 5.0, 3.0, 2.5)))
 
 
 @dataclass
@@ -475,11 +477,15 @@ class Mapper:
             dst_a, dst_b = _pad([self.scans[k] for k in j], 1e6)  # padding never matches
             res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), relative(X[j], X[i]),
                                 NP.prior_step, NP.correction)
-            std = np.sqrt(np.linalg.eigvalsh(res.cov[:, :2, :2])[:, -1])
-            ok = (std <= NP.max_std) & (res.matched_fraction >= NP.min_matched)
+            # the matches' own information (the prior taken out): along a corridor the pair
+            # says nothing, and its edge must not pin the current estimate there.
+            # (H^-1 + F)^-1 written as H (I + F H)^-1, which holds for a singular H too
+            info = res.info_data @ np.linalg.inv(np.eye(3) + floor @ res.info_data)
+            info = 0.5 * (info + np.swapaxes(info, 1, 2))
+            best = np.linalg.eigvalsh(info[:, :2, :2])[:, -1]  # the best-known direction
+            ok = (best >= NP.max_std ** -2) & (res.matched_fraction >= NP.min_matched)
             for k in np.nonzero(ok)[0]:
-                new_edges.append((int(j[k]), int(i[k]), res.pose[k],
-                                  np.linalg.inv(res.cov[k] + floor)))
+                new_edges.append((int(j[k]), int(i[k]), res.pose[k], info[k]))
         if not new_edges:
             return 0
         if self._neighbours_from is None:
