@@ -265,8 +265,11 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     lo = field.lo
     span = field.size * field.res
     gshape = np.ceil(span / P.grid).astype(int) + 1
-    for th in rots:
-        c, s = np.cos(th), np.sin(th)
+    sig = np.array([1.0, -1.0])  # a peak's rotation and its twin + pi: the twin turns the
+    # scan's points and normals by pi (same lines, same pairing, opposite normal signs), so
+    # both come out of one pass over the line pairs
+    for th0 in rots[0::2]:
+        c, s = np.cos(th0), np.sin(th0)
         R = np.array([[c, -s], [s, c]])
         ra, rb = sa @ R.T, sb @ R.T
         n_l, c_l, phi_l = _line_params(ra, rb)
@@ -277,7 +280,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         # exact rotation residual of every pairing: each candidate gets the rotation its own
         # two line pairs say (the histogram peak is only good to a bin or so)
         delta = _wrap(2 * (phi_g[:, None] - phi_l[None, :])) / 2
-        Ts, Ds = [], []
+        Ts, Ds = ([], []), ([], [])
         k = len(ra)
         for i1 in range(k):          # loops over the few scan lines, not over points
             for i2 in range(i1 + 1, k):
@@ -288,65 +291,68 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
                 if not len(g1) or not len(g2):
                     continue
                 A1, A2 = n_g[g1], n_g[g2]
-                d1 = c_g[g1] - sgn[g1, i1] * c_l[i1]
-                d2 = c_g[g2] - sgn[g2, i2] * c_l[i2]
+                # (2, n): the rotation and its twin
+                d1 = c_g[g1][None] - sig[:, None] * sgn[g1, i1][None] * c_l[i1]
+                d2 = c_g[g2][None] - sig[:, None] * sgn[g2, i2][None] * c_l[i2]
                 # solve [A1; A2] T = [d1; d2] for all pairs (Cramer's rule)
                 a11, a12 = A1[:, None, 0], A1[:, None, 1]
                 a21, a22 = A2[None, :, 0], A2[None, :, 1]
                 det = a11 * a22 - a12 * a21
-                good = np.abs(det) > 0.3
-                tx = (d1[:, None] * a22 - a12 * d2[None, :]) / np.where(good, det, 1)
-                ty = (a11 * d2[None, :] - d1[:, None] * a21) / np.where(good, det, 1)
+                ok = np.abs(det) > 0.3
+                det = np.where(ok, det, 1)
+                tx = (d1[:, :, None] * a22 - a12 * d2[:, None, :]) / det    # (2, n1, n2)
+                ty = (a11 * d2[:, None, :] - d1[:, :, None] * a21) / det
                 # both scan segments must lie on their map segments, not only on the lines
-                good &= _overlaps(lmap.a[g1], lmap.b[g1], ra[i1], rb[i1], tx, ty, 0,
-                                  P.overlap_slack)
-                good &= _overlaps(lmap.a[g2], lmap.b[g2], ra[i2], rb[i2], tx, ty, 1,
-                                  P.overlap_slack)
-                T = np.stack([tx[good], ty[good]], -1)
-                Ts.append(T)
+                good = ok & _overlaps(lmap.a[g1], lmap.b[g1], sig[:, None] * ra[i1],
+                                      sig[:, None] * rb[i1], tx, ty, 0, P.overlap_slack)
+                good &= _overlaps(lmap.a[g2], lmap.b[g2], sig[:, None] * ra[i2],
+                                  sig[:, None] * rb[i2], tx, ty, 1, P.overlap_slack)
                 w1, w2 = len_l[i1], len_l[i2]
                 D = (w1 * delta[g1, i1][:, None] + w2 * delta[g2, i2][None, :]) / (w1 + w2)
-                Ds.append(D[good])
-        # position along parallel lines (a corridor) from end points: align each end of the
-        # longest scan lines with each end of the map segments they may lie on.  Always
-        # tried: a short cross piece that would fix it is often missing from the map.
-        Tf, Df = [], []
-        for i1 in range(min(P.endpoint_lines, k)):
-            g = np.nonzero(pair[:, i1])[0]
-            if not len(g):
+                for t in (0, 1):
+                    Ts[t].append(np.stack([tx[t][good[t]], ty[t][good[t]]], -1))
+                    Ds[t].append(D[good[t]])
+        for t in (0, 1):
+            th = th0 + t * np.pi
+            # position along parallel lines (a corridor) from end points: align each end of
+            # the longest scan lines with each end of the map segments they may lie on.
+            # Always tried: a short cross piece that would fix it is often missing.
+            Tf, Df = [], []
+            for i1 in range(min(P.endpoint_lines, k)):
+                g = np.nonzero(pair[:, i1])[0]
+                if not len(g):
+                    continue
+                d = c_g[g] - sig[t] * sgn[g, i1] * c_l[i1]
+                u = np.column_stack([-n_g[g, 1], n_g[g, 0]])
+                ends_g = [np.sum(lmap.a[g] * u, -1), np.sum(lmap.b[g] * u, -1)]
+                ends_l = [sig[t] * (u @ ra[i1]), sig[t] * (u @ rb[i1])]
+                for eg in ends_g:
+                    for el in ends_l:
+                        Tf.append(d[:, None] * n_g[g] + (eg - el)[:, None] * u)
+                        Df.append(delta[g, i1])
+            if Tf:
+                cand_T.append(np.concatenate(Tf))
+                cand_R.append(th + np.concatenate(Df))
+            if not Ts[t]:
                 continue
-            d = c_g[g] - sgn[g, i1] * c_l[i1]
-            u = np.column_stack([-n_g[g, 1], n_g[g, 0]])
-            ends_g = [np.sum(lmap.a[g] * u, -1), np.sum(lmap.b[g] * u, -1)]
-            ends_l = [u @ ra[i1], u @ rb[i1]]
-            for eg in ends_g:
-                for el in ends_l:
-                    Tf.append(d[:, None] * n_g[g] + (eg - el)[:, None] * u)
-                    Df.append(delta[g, i1])
-        if Tf:
-            Tf_, Df_ = np.concatenate(Tf), np.concatenate(Df)
-            cand_T.append(Tf_)
-            cand_R.append(th + Df_)
-        if not Ts:
-            continue
-        T = np.concatenate(Ts)
-        D = np.concatenate(Ds)
-        cell = np.floor((T - lo) / P.grid).astype(int)
-        inside = np.all((cell >= 0) & (cell < gshape), axis=-1)
-        T, D, cell = T[inside], D[inside], cell[inside]
-        if not len(T):
-            continue
-        flat = cell[:, 0] * gshape[1] + cell[:, 1]
-        votes = np.bincount(flat, minlength=gshape[0] * gshape[1])
-        k = min(P.translation_peaks, votes.size)
-        top = np.argpartition(-votes, k - 1)[:k]
-        top = top[votes[top] > 0]
-        # the hypothesis of a cell: mean of the intersections that fell in it
-        sums_x = np.bincount(flat, T[:, 0], votes.size)[top]
-        sums_y = np.bincount(flat, T[:, 1], votes.size)[top]
-        sums_d = np.bincount(flat, D, votes.size)[top]
-        cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
-        cand_R.append(th + sums_d / votes[top])
+            T = np.concatenate(Ts[t])
+            D = np.concatenate(Ds[t])
+            cell = np.floor((T - lo) / P.grid).astype(int)
+            inside = np.all((cell >= 0) & (cell < gshape), axis=-1)
+            T, D, cell = T[inside], D[inside], cell[inside]
+            if not len(T):
+                continue
+            flat = cell[:, 0] * gshape[1] + cell[:, 1]
+            votes = np.bincount(flat, minlength=gshape[0] * gshape[1])
+            kk = min(P.translation_peaks, votes.size)
+            top = np.argpartition(-votes, kk - 1)[:kk]
+            top = top[votes[top] > 0]
+            # the hypothesis of a cell: mean of the intersections that fell in it
+            sums_x = np.bincount(flat, T[:, 0], votes.size)[top]
+            sums_y = np.bincount(flat, T[:, 1], votes.size)[top]
+            sums_d = np.bincount(flat, D, votes.size)[top]
+            cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
+            cand_R.append(th + sums_d / votes[top])
     if P.sweep_cells and len(rots):
         Ts_, Rs_ = _sweep(field, pts, rots, P)
         cand_T.append(Ts_)
@@ -599,17 +605,19 @@ def _polish(field: DistanceField, pts: np.ndarray, pose: np.ndarray, inlier: flo
 
 def _overlaps(ga: np.ndarray, gb: np.ndarray, la: np.ndarray, lb: np.ndarray, tx: np.ndarray,
               ty: np.ndarray, axis: int, slack: float) -> np.ndarray:
-    """Bool grid like tx: scan segment la-lb moved by (tx, ty) overlaps map segment g (indexed
-    along ``axis`` of the grid) along g's line, with a gap of at most ``slack``."""
+    """Bool array like tx (S, n1, n2): scan segment la[s]-lb[s] (S, 2) moved by (tx, ty)
+    overlaps map segment g (indexed along ``axis`` of the (n1, n2) grid) along g's line,
+    with a gap of at most ``slack``."""
     d = gb - ga
     L = np.linalg.norm(d, axis=-1)
     u = d / np.maximum(L, 1e-9)[:, None]
-    t1 = np.sum((la - ga) * u, axis=-1)
-    t2 = np.sum((lb - ga) * u, axis=-1)
-    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
-    sh = (slice(None), None) if axis == 0 else (None, slice(None))
-    tu = tx * u[:, 0][sh] + ty * u[:, 1][sh]
-    return (hi[sh] + tu > -slack) & (lo[sh] + tu < L[sh] + slack)
+    t1 = np.einsum("sgd,gd->sg", la[:, None, :] - ga[None], u)
+    t2 = np.einsum("sgd,gd->sg", lb[:, None, :] - ga[None], u)
+    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)                  # (S, n)
+    sh = (slice(None), slice(None), None) if axis == 0 else (slice(None), None, slice(None))
+    ush = (None, slice(None), None) if axis == 0 else (None, None, slice(None))
+    tu = tx * u[:, 0][ush] + ty * u[:, 1][ush]
+    return (hi[sh] + tu > -slack) & (lo[sh] + tu < L[ush] + slack)
 
 
 def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
