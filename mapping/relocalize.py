@@ -153,22 +153,28 @@ class DistanceField:
             self.seg_len = L
         return self._seg_id
 
-    def nearest(self, gx: np.ndarray, gy: np.ndarray):
+    def nearest(self, gx: np.ndarray, gy: np.ndarray, full: bool = False):
         """For points (gx, gy) of any shape: (segment index, signed distance to its line,
         distance to the segment itself, off-grid mask).  Exact point-to-line geometry on
-        the segment the grid names, so the answer is not quantised to the grid."""
+        the segment the grid names, so the answer is not quantised to the grid.  With
+        ``full``, also the segment's direction (ux, uy), the point's position t along it
+        and its length (what the ICP needs, without gathering them again)."""
         sid_grid = self.seg_id
-        qx = np.round((gx - self.lo[0]) / self.res).astype(np.int64)
-        qy = np.round((gy - self.lo[1]) / self.res).astype(np.int64)
+        if not hasattr(self, "_tab"):   # per segment: a, u, length (one gather per point)
+            self._tab = np.column_stack([self.a, self.u, self.seg_len])
+        qx = np.floor((gx - self.lo[0]) / self.res + 0.5).astype(np.int64)
+        qy = np.floor((gy - self.lo[1]) / self.res + 0.5).astype(np.int64)
         ok = (qx >= 0) & (qy >= 0) & (qx < self.size[0]) & (qy < self.size[1])
         sid = sid_grid[np.clip(qy, 0, self.size[1] - 1), np.clip(qx, 0, self.size[0] - 1)]
-        ax, ay = self.a[sid, 0], self.a[sid, 1]
-        ux, uy = self.u[sid, 0], self.u[sid, 1]
-        rx, ry = gx - ax, gy - ay
+        row = self._tab[sid]
+        ux, uy, L = row[..., 2], row[..., 3], row[..., 4]
+        rx, ry = gx - row[..., 0], gy - row[..., 1]
         e = ux * ry - uy * rx                                # along the normal (-uy, ux)
         t = ux * rx + uy * ry
-        over = np.maximum(np.maximum(-t, t - self.seg_len[sid]), 0.0)
+        over = np.maximum(np.maximum(-t, t - L), 0.0)
         dseg = np.where(ok, np.hypot(e, over), self.far)
+        if full:
+            return sid, e, dseg, ok, ux, uy, t, L
         return sid, e, dseg, ok
 
     def padded_mask(self, thr: float, pad_m: float = 30.0) -> tuple[int, np.ndarray]:
@@ -425,16 +431,14 @@ def _icp(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
         c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
         rx, ry = c * px - s * py, s * px + c * py
         gx, gy = rx + x[:, 0, None], ry + x[:, 1, None]
-        sid, e, dseg, _ = field.nearest(gx, gy)
-        ux, uy = field.u[sid, 0], field.u[sid, 1]
-        ax, ay = gx - field.a[sid, 0], gy - field.a[sid, 1]
-        t = ux * ax + uy * ay
-        tc = np.clip(t, 0.0, field.seg_len[sid])
-        dx, dy = ax - tc * ux, ay - tc * uy              # point minus its closest point
-        beyond = t != tc
+        _, e, dseg, _, ux, uy, t, L = field.nearest(gx, gy, full=True)
+        # beyond an end the residual points from the end point to the point: along the
+        # segment by the overshoot, across it by e
+        over = np.where(t < 0.0, t, np.where(t > L, t - L, 0.0))
+        beyond = over != 0.0
         inv = 1.0 / np.maximum(dseg, 1e-9)
-        nx = np.where(beyond, dx * inv, -uy)
-        ny = np.where(beyond, dy * inv, ux)
+        nx = np.where(beyond, (over * ux - e * uy) * inv, -uy)
+        ny = np.where(beyond, (over * uy + e * ux) * inv, ux)
         e = np.where(beyond, dseg, e)
         scale = max(gate / 3.0, 0.02)
         w = (dseg < gate) / (1.0 + (e / scale) ** 2)
