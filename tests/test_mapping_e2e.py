@@ -43,9 +43,10 @@ def test_intel_high_noise():
     res = build_map(scans, odo)
     r = res.report
     assert r["scans_processed"] == 910
-    # loose but meaningful: far better than dead reckoning, locally and globally (measured
-    # here: 0.10-0.17 m and 1.1-1.5 deg over noise seeds; dead reckoning 10-13 m)
-    assert r["ate_trans_m"] < 0.4 and r["ate_rot_deg"] < 3.0, r
+    # measured here: 0.057-0.09 m and 0.72-0.98 deg over noise seeds 0-5 (seed 0: 0.06 m,
+    # 0.81 deg); dead reckoning 10-13 m.  The bound leaves room for other BLAS/CPUs, where
+    # a different loop closure or two moves the result by a centimetre or two
+    assert r["ate_trans_m"] < 0.12 and r["ate_rot_deg"] < 1.5, r
     assert r["ate_trans_m"] < 0.05 * r["odometry"]["ate_trans_m"], r
     assert r["rpe_trans_m"] < r["odometry"]["rpe_trans_m"], r
     assert r["rpe_rot_deg"] < r["odometry"]["rpe_rot_deg"], r
