@@ -81,7 +81,7 @@ class RelocParams:
     icp_gates: tuple[float, ...] = (0.5, 0.3, 0.2, 0.12)   # gate (m) per iteration
     final_gates: tuple[float, ...] = (0.2, 0.12, 0.08, 0.06, 0.06)
     final_candidates: int = 12        # of those, refined on all points and ranked
-    cross_weight: float = 0.1         # rank = fit - this * crossing fraction (free space)
+    cross_weight: float = 0.15        # rank = fit - this * crossing fraction (free space)
     cross_skip: float = 0.3           # beam length (m) near the laser that never counts
     cross_beams: int = 60             # beams sampled for the crossing fraction
     cross_margin: float = 0.2         # a crossed wall's line lies this far (perpendicular)
