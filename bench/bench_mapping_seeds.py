@@ -1,0 +1,58 @@
+"""2D mapping on the real Intel log across odometry-noise seeds: the spread of the trajectory
+error (one seed can be lucky), what the finishing neighbour pass adds, and the error against
+the independent Kümmerle et al. relations next to the log's own reference poses."""
+
+from __future__ import annotations
+
+import numpy as np
+
+LOG = "laser/intel-corrected.log.gz"
+RELATIONS = "laser/intel.relations"
+SEEDS = (0, 1, 2, 3)
+
+
+def run() -> dict:
+    from cgamap.drivers.carmen import read_scans
+    from cgamap.mapping.evaluation import load_relations, relations_error
+    from cgamap.mapping.odometry import add_odometry_noise
+    from cgamap.mapping.offline import build_map
+    from cgamap.mapping.slam2d import MapperParams, NeighbourParams
+    from conftest import data_dir  # bench/run.py puts tests/ on sys.path
+
+    path = data_dir() / LOG
+    if not path.exists():
+        return {"skipped": f"{LOG} not found under {data_dir()}"}
+    scans = read_scans(path)
+    odo0 = np.array([s.pose_odom for s in scans])
+    keys = ("ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg", "ms_per_scan_median",
+            "final_optimisation_ms", "loop_closures")
+    out: dict = {"log": LOG, "odom_noise": "high", "seeds": {}}
+    first = None
+    for seed in SEEDS:
+        res = build_map(scans, add_odometry_noise(odo0, "high", seed))
+        out["seeds"][str(seed)] = {k: res.report[k] for k in keys}
+        first = first or res
+    ate = np.array([v["ate_trans_m"] for v in out["seeds"].values()])
+    rot = np.array([v["ate_rot_deg"] for v in out["seeds"].values()])
+    out["ate_trans_m"] = {"mean": round(float(ate.mean()), 4), "max": float(ate.max())}
+    out["ate_rot_deg"] = {"mean": round(float(rot.mean()), 3), "max": float(rot.max())}
+    off = build_map(scans, add_odometry_noise(odo0, "high", SEEDS[0]),
+                    MapperParams(neighbours=NeighbourParams(enabled=False)))
+    out["seed0_without_neighbour_pass"] = {k: off.report[k] for k in keys}
+    rel_path = data_dir() / RELATIONS
+    if rel_path.exists():
+        rel = load_relations(rel_path)
+        est = relations_error(first.stamps, first.poses, rel)
+        ref = relations_error(first.stamps, np.array([s.pose_ref for s in scans]), rel,
+                              offset=est["clock_offset_s"])
+        out["relations_seed0"] = {"estimate": est, "reference": ref}
+    return out
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    print(json.dumps(run(), indent=2))
