@@ -105,11 +105,13 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
                         seg_a + (0.5 + _G) * (seg_b - seg_a)], axis=1)
     wq = np.concatenate([L, L], axis=1) * 0.5
     rows = np.arange(n_pairs)[:, None]
+    pts = np.concatenate([seg_a, seg_b, q], axis=1)  # moved together: one product per pass
     if k and index.a.shape[-2]:
         for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
-            R = _rot_t(x[:, 2])
             t = x[:, None, :2]
-            ok, cost = match_index(seg_a @ R + t, seg_b @ R + t, index, np.deg2rad(ag), gate)
+            moved = pts @ _rot_t(x[:, 2]) + t
+            qg = moved[:, 2 * k:]
+            ok, cost = match_index(moved[:, :k], moved[:, k:2 * k], index, np.deg2rad(ag), gate)
             best = np.argmin(cost, axis=-1)
             has = np.isfinite(cost.min(axis=-1))  # the cost is inf where no candidate
             matches = np.where(has, best, -1)
@@ -118,7 +120,6 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
             g = w_prior * r
             jm = np.concatenate([best, best], axis=1)
             use = np.concatenate([has, has], axis=1)
-            qg = q @ R + t
             n = index.n[rows, jm]
             e = (n * qg).sum(-1) - index.c[rows, jm]
             rel = qg - t
