@@ -20,7 +20,7 @@ pose follows through the inverse mount.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -95,6 +95,7 @@ class NeighbourParams:
     floor: tuple[float, float] = (0.01, 0.0033)  # added to each edge's std (m, rad)
     sequential_weight: float = 0.3   # the scan-to-map steps' edges then count this much
     rounds: int = 2               # match again from the re-optimised poses (2: measured best)
+    coarse_first: bool = True     # the first round farther and with a wider first gate
     prior_step: float = 0.5       # the current estimate as prior, as wide as after this step
     chunk: int = 512              # pairs solved together (memory ~ chunk * segments^2)
     # wide first gates: a region the online closures left bent by decimetres is pulled in
@@ -434,17 +435,27 @@ class Mapper:
             self.optimize(final=True)
             if self.params.loop.sweep_every and self._sweep_closures():
                 self.optimize(final=True)
-        for _ in range(self.params.neighbours.rounds if self.params.neighbours.enabled else 0):
-            if self._neighbour_edges():
+        NP = self.params.neighbours
+        for r in range(NP.rounds if NP.enabled else 0):
+            if r == 0 and NP.coarse_first:
+                # a coarse first round: farther pairs, a wider first gate; a stretch the
+                # online closures left off by more than the fine gates reach comes in
+                wide = replace(NP, radius=NP.radius * 1.6, correction=replace(
+                    NP.correction, gates=(1.0, *NP.correction.gates),
+                    angle_gates_deg=(20.0, *NP.correction.angle_gates_deg)))
+                got = self._neighbour_edges(wide)
+            else:
+                got = self._neighbour_edges()
+            if got:
                 self.optimize(final=True)
         for _ in range(self.params.refine_passes):
             self.refine()
         return self.poses
 
-    def neighbour_pairs(self) -> np.ndarray:
+    def neighbour_pairs(self, NP: NeighbourParams | None = None) -> np.ndarray:
         """(p, 2) node pairs j < i for the neighbour pass: positions within ``radius`` in the
         current estimate, and each node with its ``previous`` predecessors."""
-        NP = self.params.neighbours
+        NP = NP or self.params.neighbours
         X = self.poses
         n = len(X)
         near = cKDTree(X[:, :2]).query_pairs(NP.radius, output_type="ndarray")
@@ -456,16 +467,16 @@ class Mapper:
         keep = (counts[pairs[:, 0]] >= 2) & (counts[pairs[:, 1]] >= 2)
         return pairs[keep]
 
-    def _neighbour_edges(self) -> int:
+    def _neighbour_edges(self, NP: NeighbourParams | None = None) -> int:
         """The finishing pass (:class:`NeighbourParams`): scan i's segments against scan j's
         for every neighbour pair (solved in batches, :func:`.correction.correct_batch`); the
         good matches become robust edges with their own covariance, and the scan-to-map
         steps' edges are down-weighted.  Returns the edges added."""
-        NP = self.params.neighbours
+        NP = NP or self.params.neighbours
         if len(self.scans) != self.count or self.count < 2:
             return 0
         X = self.poses
-        pairs = self.neighbour_pairs()
+        pairs = self.neighbour_pairs(NP)
         g = self.graph
         added = 0
         f_t, f_r = NP.floor
