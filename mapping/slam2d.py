@@ -66,6 +66,7 @@ class LoopParams:
     max_jump: float = 3.0         # the closure may move the pose by at most this (m) ...
     max_turn: float = np.deg2rad(25.0)  # ... and turn it by at most this
     sigma: tuple[float, float] = (0.05, 0.01)  # loop edge std (m, rad)
+    confirm: bool = True          # a relocalised closure must also pass as a tracking closure
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations ...
@@ -163,6 +164,7 @@ class Mapper:
         self.neighbour_edges = 0
         self._neighbours_from: int | None = None  # graph edges from here on: neighbour pass
         self.loop_stats = {"tracked": 0, "tried": 0, "no_pose": 0, "low_score": 0,
+                           "unconfirmed": 0,
                            "ambiguous": 0}
 
     @property
@@ -324,6 +326,17 @@ class Mapper:
                 if rivals:
                     self.loop_stats["ambiguous"] += 1
                     continue
+                if LP.confirm:
+                    # the Hough pose is coarse (a near miss of a few degrees bends the map):
+                    # refined by the point-to-line correction from there, it must still fit
+                    corr = correct_pose(seg, sub.a, sub.b, best.pose, 1.0,
+                                        self.params.correction)
+                    moved = relative(best.pose, corr.pose)
+                    if corr.matched_fraction < 0.5 or np.hypot(*moved[:2]) > 0.3 or abs(
+                            moved[2]) > np.deg2rad(5.0):
+                        self.loop_stats["unconfirmed"] += 1
+                        continue
+                    best = Hypothesis(corr.pose, best.score)
             else:
                 self.loop_stats["tracked"] += 1
             st, sr = LP.sigma
