@@ -73,8 +73,9 @@ class RelocParams:
     sweep_grid: float = 0.25          # cell of the sweep (m)
     sweep_points: int = 20            # scan points correlated by the sweep
     # point-based verification (on unless off): the best coarse candidates are pulled in by
-    # a batched point-to-line ICP against the map's nearest segments, re-ranked, and the
-    # best few polished on all points (instead of the segment correction + grid polish)
+    # a batched point-to-segment ICP against the map's nearest segments, re-ranked, and the
+    # best dozen refined on all points (instead of the segment correction + grid polish;
+    # ``polish`` and ``crossing_weight`` belong to that older path)
     point_refine: bool = True
     icp_candidates: int = 120         # distinct coarse candidates pulled in on a subsample
     icp_points: int = 48              # scan points of that first pull
