@@ -125,6 +125,7 @@ def _relations_report(relations: np.ndarray, stamps: np.ndarray, poses: np.ndarr
 
 
 def run_build(args: argparse.Namespace) -> int:
+    from cgamap.mapping.fileio import write_text_atomic
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
     from cgamap.mapping.odometry import add_odometry_noise
@@ -151,14 +152,14 @@ def run_build(args: argparse.Namespace) -> int:
     save_map(res.map, out / "map.json", meta)
     render_png(res.map, out / "map.png", res.poses)
     export_occupancy(res.map, out / "map")
-    traj = np.column_stack([res.stamps, res.poses])
-    np.savetxt(out / "trajectory.csv", traj, delimiter=",", header="t,x,y,theta",
-               comments="", fmt=["%.6f", "%.4f", "%.4f", "%.5f"])
+    rows = "".join(f"{t:.6f},{x:.4f},{y:.4f},{th:.5f}\n"
+                   for t, (x, y, th) in zip(res.stamps, res.poses, strict=True))
+    write_text_atomic(out / "trajectory.csv", "t,x,y,theta\n" + rows)
     report = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
               "skipped_lines": st.skipped, **res.report}
     if relations is not None:
         report["relations"] = _relations_report(relations, res.stamps, res.poses, scans, odo)
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_text_atomic(out / "report.json", json.dumps(report, indent=2) + "\n")
     if not args.quiet:
         keys = ("scans_processed", "segments", "ms_per_scan_median", "ate_trans_m",
                 "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg")
