@@ -33,6 +33,18 @@ def scan(w: World, pose, n: int = 180, fov: float = np.pi, sigma: float = 0.0,
                            pose_ref=tuple(float(v) for v in pose))
 
 
+def scanned_map(w: World, poses, n: int = 360):
+    """A line map built from full-circle scans at the given poses (their true poses)."""
+    from cgamap.mapping.linemap import LineMap, integrate
+    from cgamap.mapping.segments import segments_from_scan
+
+    m = LineMap()
+    for i, p in enumerate(poses):
+        seg = segments_from_scan(scan(w, p, n=n, fov=2 * np.pi))
+        integrate(m, seg.transformed(*p), i)
+    return m
+
+
 def seg_lines(seg) -> list[tuple[float, float]]:
     """(undirected angle mod pi, distance from origin) per segment, for assertions."""
     d = seg.b - seg.a

@@ -6,19 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from cgamap.drivers.sim.world import get_world
-from cgamap.mapping.linemap import LineMap, integrate
 from cgamap.mapping.posegraph import wrap
 from cgamap.mapping.relocalize import DistanceField, RelocParams, relocalize
 from cgamap.mapping.segments import segments_from_scan
-from synth2d import scan, world
-
-
-def _map_of(w, poses) -> LineMap:
-    m = LineMap()
-    for i, p in enumerate(poses):
-        seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
-        integrate(m, seg.transformed(*p), i)
-    return m
+from synth2d import scan, scanned_map, world
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +17,7 @@ def loop_world():
     w = get_world("loop")
     t = np.linspace(0, w.path_length / w.speed, 60, endpoint=False)
     poses = np.column_stack(w.trajectory(t))
-    return w, poses, _map_of(w, poses)
+    return w, poses, scanned_map(w, poses)
 
 
 def test_finds_known_poses(loop_world):
@@ -52,7 +43,7 @@ def test_finds_known_poses(loop_world):
 
 def test_symmetric_room_gives_ranked_hypotheses():
     w = world([(-4, -2, 4, -2), (4, -2, 4, 2), (4, 2, -4, 2), (-4, 2, -4, -2)])  # a box
-    m = _map_of(w, [(0.0, 0.0, 0.0)])
+    m = scanned_map(w, [(0.0, 0.0, 0.0)])
     p = np.array([1.0, 0.5, 0.3])
     r = relocalize(m, segments_from_scan(scan(w, p, n=720, fov=2 * np.pi)))
     assert r.found and len(r.hypotheses) >= 2
@@ -84,7 +75,7 @@ def test_sweep_proposes_the_true_cell():
     from cgamap.mapping.relocalize import _sweep
     w = world([(-4, -2, 4, -2), (4, -2, 4, 0), (4, 0, 0, 0), (0, 0, 0, 3), (0, 3, -4, 3),
                (-4, 3, -4, -2)])
-    m = _map_of(w, [(0.0, 0.0, 0.0), (-2.0, 1.0, 0.0)])
+    m = scanned_map(w, [(0.0, 0.0, 0.0), (-2.0, 1.0, 0.0)])
     p = np.array([-1.2, -0.7, 0.4])
     seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
     P = RelocParams()

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from cgamap.mapping.linemap import LineMap, integrate
+from cgamap.mapping.linemap import LineMap
 from cgamap.mapping.posegraph import wrap
 from cgamap.mapping.relocalize import (
     DistanceField,
@@ -20,7 +20,7 @@ from cgamap.mapping.relocalize import (
     relocalize,
 )
 from cgamap.mapping.segments import Segments, segments_from_scan
-from synth2d import ROOM, scan, world
+from synth2d import ROOM, scan, scanned_map, world
 
 
 def _segment_map(walls) -> LineMap:
@@ -28,14 +28,6 @@ def _segment_map(walls) -> LineMap:
     w = np.asarray(walls, float)
     return LineMap(a=w[:, :2].copy(), b=w[:, 2:].copy(), n_pts=np.full(len(w), 10.0),
                    n_obs=np.full(len(w), 3))
-
-
-def _scanned_map(w, poses) -> LineMap:
-    m = LineMap()
-    for i, p in enumerate(poses):
-        seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
-        integrate(m, seg.transformed(*p), i)
-    return m
 
 
 def _pose_err(a, b) -> tuple[float, float]:
@@ -142,7 +134,7 @@ def test_two_identical_rooms_are_told_apart_by_free_space():
 def test_single_line_scan_is_placed_by_its_points():
     # only one segment survives (the others are dropped); the sweep places the points
     w = world(ROOM)
-    m = _scanned_map(w, [(0.0, 0.0, 0.0), (2.0, 1.0, 0.0)])
+    m = scanned_map(w, [(0.0, 0.0, 0.0), (2.0, 1.0, 0.0)])
     p = np.array([1.0, 0.5, 0.4])
     seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
     one = seg.subset(np.argsort(-seg.length)[:1])
