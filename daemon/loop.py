@@ -96,6 +96,8 @@ class Mapper2D:
 
         kw = {k: v for k, v in params.items() if k in {f.name for f in fields(MapperParams)}
               and not is_dataclass(getattr(MapperParams, k, None))}
+        # a daemon runs for months: the pose graph keeps its newest nodes (params2d.max_nodes)
+        kw.setdefault("max_nodes", 20_000)
         # the neighbour pass belongs to a finished run (map build); a daemon never finishes,
         # so it keeps no per-scan segments for it
         self._make = lambda pose: Mapper(

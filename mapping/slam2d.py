@@ -130,6 +130,9 @@ class MapperParams:
     # the corrections of well-matched steps (exponential average with this weight)
     calib_rate: float = 0.05
     calib_min_fraction: float = 0.5
+    # a long run (the daemon): past this many graph nodes the oldest are dropped (0: never);
+    # their map segments stay and still serve for matching, frozen where they are
+    max_nodes: int = 0
 
 
 @dataclass
@@ -261,7 +264,42 @@ class Mapper:
         # optimisation has just moved the map)
         near = corr.near if corr is not None and not optimized else None
         self._merge(seg, i, near)
-        return StepResult(self.graph.poses[i].copy(), len(seg), corr, loops, optimized)
+        pose = self.graph.poses[i].copy()
+        if P.max_nodes and self.count > P.max_nodes:
+            self.compact(max(P.max_nodes * 9 // 10, 1))
+        return StepResult(pose, len(seg), corr, loops, optimized)
+
+    def compact(self, keep: int) -> int:
+        """Keep the newest ``keep`` nodes of the graph; returns how many went.
+
+        The map keeps every segment: the dropped scans' contributions are forgotten, so a
+        segment seen only by them stays frozen where it is (as an adopted map's do) and one
+        also seen later follows its later scans.  Edges to dropped nodes go, and the oldest
+        kept node is held fixed where it is.  Node numbers (and the map's scan stamps) shift
+        down by the number dropped."""
+        cut = self.count - keep
+        if cut <= 0:
+            return 0
+        g, m = self.graph, self.map
+        live = m.c_node >= cut
+        for name in ("c_seg", "c_node", "c_n", "c_cent", "c_scat", "c_a", "c_b"):
+            setattr(m, name, getattr(m, name)[live])
+        m.c_node = m.c_node - cut
+        m.created = m.created - cut
+        m.last_seen = m.last_seen - cut
+        ei, ej = np.array(g.ei, int), np.array(g.ej, int)
+        kept = np.nonzero((ei >= cut) & (ej >= cut))[0]
+        g.poses = g.poses[cut:]
+        g.ei = [int(ei[e]) - cut for e in kept]
+        g.ej = [int(ej[e]) - cut for e in kept]
+        for name in ("z", "info", "loop"):
+            setattr(g, name, [getattr(g, name)[e] for e in kept])
+        self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
+        self.travel = self.travel[cut:]
+        self.scans = self.scans[cut:]
+        self.last_opt -= cut
+        self.last_loop -= cut
+        return cut
 
     def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
         P = self.params

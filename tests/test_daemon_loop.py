@@ -145,3 +145,23 @@ def test_a_failing_step_loses_the_message_not_the_loop():
     loop.handle("laser", scan_at(get_world("corridor"), 0.0, 0, 10))
     loop.process(odometry_live=False)
     assert loop.counts["errors_scan"] == 1 and loop.counts.get("scans", 0) == 0
+
+
+def test_the_daemon_bounds_its_pose_graph():
+    """A daemon runs for months: its mapper keeps the newest nodes (params2d.max_nodes,
+    20 000 unless set) and skips the finishing pass's per-scan store."""
+    loop = MappingLoop(cfg(), devices={})
+    assert loop.mapper.m.params.max_nodes == 20_000
+    assert not loop.mapper.m.params.neighbours.enabled
+    small = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0,
+                            params2d={"max_nodes": 12}), devices={})
+    world = get_world("room")
+    for i in range(40):
+        t = 0.25 * i
+        x, y, th = world.trajectory(t)
+        stamp = int(t * 1e9) + 1
+        small.handle("base", OdometryPose(stamp_ns=stamp - 1, x=x, y=y, theta=th))
+        small.handle("laser", scan_at(world, t, i, stamp))
+        small.process(odometry_live=False)
+    assert 0 < small.mapper.m.count <= 12
+    assert len(small.segments()) >= 4  # the map outlives the dropped nodes

@@ -1,0 +1,50 @@
+"""A long run with a bounded pose graph (``MapperParams.max_nodes``): the oldest nodes go,
+the map stays, and tracking against it keeps working."""
+
+from __future__ import annotations
+
+import numpy as np
+from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.evaluation import ate
+from cgamap.mapping.odometry import add_odometry_noise
+from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+from synth2d import scan
+
+
+def _run(max_nodes: int, laps: int = 4):
+    w = get_world("loop")
+    t = np.arange(0, laps * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=4)
+    m = Mapper(MapperParams(max_nodes=max_nodes,
+                            neighbours=NeighbourParams(enabled=False)), initial_pose=odo[0])
+    est, sizes = [], []
+    for s, o in zip(scans, odo, strict=True):
+        est.append(m.step(s.ranges, s.angle_min, s.angle_increment, o).pose)
+        sizes.append((m.count, len(m.map.c_node), len(m.map), len(m.graph.ei)))
+    return m, np.array(est), truth, np.array(sizes)
+
+
+def test_bounded_graph_keeps_tracking():
+    m, est, truth, sizes = _run(max_nodes=40)
+    n = len(truth)
+    assert n > 150  # several times the bound
+    assert sizes[:, 0].max() <= 40
+    # contributions and edges stay bounded too, and the map does not pile up duplicates
+    assert sizes[-1, 1] <= 1.2 * sizes[:, 1][sizes[:, 0] == 40].max()
+    assert sizes[:, 3].max() < 40 * 6
+    assert sizes[-1, 2] <= 60
+    # every node index the map and the graph hold is a live node
+    assert m.map.c_node.min() >= 0 and m.map.c_node.max() < m.count
+    assert max(m.graph.ei + m.graph.ej) < m.count and 0 in m.anchors
+    # the online poses (as the robot saw them, scan by scan) stay on the truth
+    err = ate(est, truth)
+    assert err["ate_trans_m"] < 0.1 and err["ate_rot_deg"] < 1.5, err
+
+
+def test_unbounded_run_is_unchanged_by_the_option():
+    """max_nodes above the run's length changes nothing."""
+    a = _run(max_nodes=0, laps=1)
+    b = _run(max_nodes=10_000, laps=1)
+    assert np.array_equal(a[1], b[1])
