@@ -82,6 +82,33 @@ def _non_empty(v) -> str | None:
     return None if v.strip() else "must not be empty"
 
 
+def _check_params2d(v: dict) -> str | None:
+    """The scalar fields of ``mapping.slam2d.MapperParams`` (the laser mount comes from the
+    device's mount), each of its default's type: a typo is an error, not ignored."""
+    from dataclasses import MISSING, fields, is_dataclass
+
+    from cgamap.mapping.slam2d import MapperParams
+
+    known = {f.name: f.default for f in fields(MapperParams)
+             if f.default is not MISSING and not is_dataclass(f.default) and f.name != "mount"}
+    for key, value in v.items():
+        if key not in known:
+            return f"unknown 2D mapper parameter {key!r} (one of {', '.join(sorted(known))})"
+        want = known[key]
+        if isinstance(want, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(want, int):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif isinstance(want, float):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+        else:  # tuples of numbers
+            ok = isinstance(value, list) and len(value) == len(want) and all(
+                isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+        if not ok:
+            return f"{key}: expected {_type_name(want)} like {want!r}, got {value!r}"[:160]
+    return None
+
+
 def check_url(url: str) -> str | None:
     """A device URL: ``serial:///dev/ttyUSB0?baudrate=38400``, ``tcp://host:port``,
     ``sim://name``, ``file:///path/log.gz``, ``usb://`` (first device of the model)."""
@@ -163,7 +190,7 @@ SCHEMA = Spec("record", fields={
         "map3d": Spec("bool", default=True),
         "rate3d": Spec("float", default=1.0, check=_positive),
         "odometry": Spec("map", default={}, values=Spec("any")),
-        "params2d": Spec("map", default={}, values=Spec("any")),
+        "params2d": Spec("map", default={}, values=Spec("any"), check=_check_params2d),
         "params3d": Spec("map", default={}, values=Spec("any")),
         "lost_quality": Spec("float", default=0.2, check=_non_negative),
         "lost_after": Spec("int", default=8, check=_positive),
