@@ -66,7 +66,7 @@ class LoopParams:
     max_jump: float = 3.0         # the closure may move the pose by at most this (m) ...
     max_turn: float = np.deg2rad(25.0)  # ... and turn it by at most this
     sigma: tuple[float, float] = (0.05, 0.01)  # loop edge std (m, rad)
-    confirm: bool = True          # a relocalised closure must also pass as a tracking closure
+    confirm: bool = True          # a relocalised closure is refined and must still fit
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations ...
@@ -521,8 +521,8 @@ class Mapper:
     def _neighbour_edges(self, NP: NeighbourParams | None = None) -> int:
         """The finishing pass (:class:`NeighbourParams`): scan i's segments against scan j's
         for every neighbour pair (solved in batches, :func:`.correction.correct_batch`); the
-        good matches become robust edges with their own covariance, and the scan-to-map
-        steps' edges are down-weighted.  Returns the edges added."""
+        good matches become robust edges carrying the matches' own information, and the
+        scan-to-map steps' edges are down-weighted.  Returns the edges added."""
         NP = NP or self.params.neighbours
         if len(self.scans) != self.count or self.count < 2:
             return 0
