@@ -103,16 +103,21 @@ def test_low_quality_for_long_triggers_relocalisation():
     assert not loop.lost
 
 
-def test_real_mapper_state_round_trip_and_relocalisation():
-    world = get_world("room")
-    loop = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0), devices={})
-    for i in range(40):
+def _drive(loop: MappingLoop, world, n: int) -> None:
+    """n scans along the world's path, 0.25 s apart, each with the odometry of its instant."""
+    for i in range(n):
         t = 0.25 * i
         x, y, th = world.trajectory(t)
         stamp = int(t * 1e9) + 1
         loop.handle("base", OdometryPose(stamp_ns=stamp - 1, x=x, y=y, theta=th))
         loop.handle("laser", scan_at(world, t, i, stamp))
         loop.process(odometry_live=False)
+
+
+def test_real_mapper_state_round_trip_and_relocalisation():
+    world = get_world("room")
+    loop = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0), devices={})
+    _drive(loop, world, 40)
     n = len(loop.segments())
     assert n >= 4
     st = loop.state()
@@ -155,13 +160,6 @@ def test_the_daemon_bounds_its_pose_graph():
     assert not loop.mapper.m.params.neighbours.enabled
     small = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0,
                             params2d={"max_nodes": 12}), devices={})
-    world = get_world("room")
-    for i in range(40):
-        t = 0.25 * i
-        x, y, th = world.trajectory(t)
-        stamp = int(t * 1e9) + 1
-        small.handle("base", OdometryPose(stamp_ns=stamp - 1, x=x, y=y, theta=th))
-        small.handle("laser", scan_at(world, t, i, stamp))
-        small.process(odometry_live=False)
+    _drive(small, get_world("room"), 40)
     assert 0 < small.mapper.m.count <= 12
     assert len(small.segments()) >= 4  # the map outlives the dropped nodes
