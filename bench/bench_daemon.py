@@ -3,7 +3,6 @@ pose error on the real Intel log (against the log's corrected poses).  Measures,
 
 from __future__ import annotations
 
-import gzip
 import os
 import shutil
 import signal
@@ -87,21 +86,14 @@ def _replay_intel(max_scans: int = 400) -> dict:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from cgamap.daemon.store import CheckpointStore
     from cgamap.mapping.evaluation import ate, rpe
-    from conftest import data_dir
+    from conftest import data_dir, head_of_log
 
     log = data_dir() / "laser" / "intel-corrected.log.gz"
     if not log.exists():
         return {"skipped": f"{log} not found"}
     work, run = Path(tempfile.mkdtemp()), Path(tempfile.mkdtemp(prefix="cgb-"))
     try:
-        part = work / "intel-part.log"
-        n = 0
-        with gzip.open(log, "rt") as src, open(part, "w") as dst:
-            for line in src:
-                dst.write(line)
-                n += line.startswith("FLASER")
-                if n >= max_scans:
-                    break
+        part = head_of_log(log, work / "intel-part.log", max_scans)
         t0 = time.perf_counter()
         p = _daemon({"checkpoint": {"interval": 600.0}}, work, run,
                     ["--replay", str(part), "--exit-after-replay"])

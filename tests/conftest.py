@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import os
 from pathlib import Path
 
@@ -19,6 +20,22 @@ def data_dir() -> Path:
         if cand.is_dir():
             return cand
     return REPO.parent / "shared" / "data"
+
+
+def head_of_log(src: Path, dst: Path, scans: int) -> Path:
+    """The start of a CARMEN log (gzip or not) up to its ``scans``-th FLASER line, written to
+    ``dst`` (gzipped when its name ends in .gz)."""
+    def opener(p: Path):
+        return gzip.open if str(p).endswith(".gz") else open
+
+    kept = 0
+    with opener(src)(src, "rt") as fin, opener(dst)(dst, "wt") as fout:
+        for line in fin:
+            fout.write(line)
+            kept += line.startswith("FLASER")
+            if kept >= scans:
+                break
+    return dst
 
 
 def require_data(relpath: str) -> Path:

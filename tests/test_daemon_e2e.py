@@ -178,17 +178,10 @@ def test_record_without_daemon(tmp_path):
 
 def test_replay_of_a_real_carmen_log(tmp_path, shared_data):
     """cgamapd --replay on the first 200 scans of the Intel lab log (real data)."""
-    import gzip
+    from conftest import head_of_log
 
-    log = shared_data("laser/intel-corrected.log.gz")
-    part = tmp_path / "intel-200.log"
-    n = 0
-    with gzip.open(log, "rt") as src, open(part, "w") as dst:
-        for line in src:
-            dst.write(line)
-            n += line.startswith("FLASER")
-            if n >= 200:
-                break
+    part = head_of_log(shared_data("laser/intel-corrected.log.gz"), tmp_path / "intel-200.log",
+                       200)
     run = short_dir()
     try:
         r = DaemonProc({"checkpoint": {"interval": 30.0}}, tmp_path, run,

@@ -3,7 +3,6 @@ the ``cgamap map build`` / ``cgamap relocalize`` commands."""
 
 from __future__ import annotations
 
-import gzip
 import json
 
 import numpy as np
@@ -13,7 +12,7 @@ from cgamap.drivers.carmen import read_scans
 from cgamap.drivers.sim.world import get_world
 from cgamap.mapping.odometry import add_odometry_noise
 from cgamap.mapping.offline import build_map
-from conftest import require_data
+from conftest import head_of_log, require_data
 from synth2d import scan
 
 INTEL = "laser/intel-corrected.log.gz"
@@ -54,16 +53,8 @@ def test_intel_high_noise():
 
 @pytest.fixture(scope="module")
 def short_log(tmp_path_factory):
-    path = require_data(INTEL)
-    out = tmp_path_factory.mktemp("log") / "intel-short.log.gz"
-    kept = 0
-    with gzip.open(path, "rt") as src, gzip.open(out, "wt") as dst:
-        for line in src:
-            dst.write(line)
-            kept += line.startswith("FLASER")
-            if kept >= 120:
-                break
-    return out
+    return head_of_log(require_data(INTEL), tmp_path_factory.mktemp("log") /
+                       "intel-short.log.gz", 120)
 
 
 def test_cli_build_and_relocalize(short_log, tmp_path, capsys):
