@@ -105,6 +105,8 @@ class Mapper2D:
             initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
         self._pose = np.zeros(3)
+        self._field = None       # the map's distance field for relocalisation, and the
+        self._field_key = None   # (map, scans, segments) it was built for
 
     @property
     def pose(self) -> np.ndarray:
@@ -151,7 +153,7 @@ class Mapper2D:
         # the map's distance field (~25 ms on a building) is kept while the map is unchanged:
         # a lost robot retries on every scan
         key = (id(self.m.map), self.m.count, len(self.m.map))
-        if getattr(self, "_field_key", None) != key:
+        if self._field_key != key:
             self._field = DistanceField(self.m.map, RelocParams().field_resolution)
             self._field_key = key
         res = relocalize(self.m.map, seg, self._field)
