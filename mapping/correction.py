@@ -72,7 +72,7 @@ class BatchCorrection:
     matched_fraction: np.ndarray  # (P,) share of the segments' length matched
     rms: np.ndarray               # (P,) RMS point-to-line residual of the matches (m)
     matches: np.ndarray           # (P, k) map segment per scan segment, -1 unmatched
-    info_data: np.ndarray | None = None  # (P, 3, 3) information from the matches alone
+    info_data: np.ndarray         # (P, 3, 3) information from the matches alone
     # (the prior's taken out): ~0 along what the lines leave free, e.g. along a corridor
 
 
