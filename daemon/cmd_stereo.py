@@ -119,14 +119,16 @@ def run(args: argparse.Namespace) -> int:
     import cv2
     from cgamap.drivers.stereo_depthai import DeviceNotFound
     from cgamap.drivers.stereo_replay import SequenceWriter
+    from cgamap.mapping.fileio import write_bytes_atomic
 
     _check_args(args)
     grabber = _grabber(args)
     created = _check_out(args)
     mount = getattr(grabber, "mount", None) if args.global_frame else None
+    # crash-safe files: a frame cut short (full disk, kill) never stands under its final name
     writer = SequenceWriter(args.out, save_points=not args.no_points, stride=args.stride,
                             max_depth=args.max_depth, global_frame=args.global_frame,
-                            mount=mount)
+                            mount=mount, write_file=write_bytes_atomic)
     try:
         return _grab(args, grabber, writer, cv2, DeviceNotFound)
     finally:

@@ -202,9 +202,17 @@ def load_calibration(path: str | Path) -> StereoCalibration:
         raise CalibrationFileError(f"stereo calibration {path}: {exc}") from None
 
 
+def calibration_text(calib: StereoCalibration) -> str:
+    """A calibration as plain YAML (re-readable by ``load_calibration``): the file's content,
+    for a caller that writes it crash-safely (``mapping.fileio.write_text_atomic``)."""
+    return yaml.safe_dump(calib.to_dict(), sort_keys=False)
+
+
 def save_calibration(calib: StereoCalibration, path: str | Path) -> None:
-    """Write a calibration as plain YAML (re-readable by ``load_calibration``)."""
-    Path(path).write_text(yaml.safe_dump(calib.to_dict(), sort_keys=False))
+    """Write ``calibration_text(calib)`` to ``path`` in place (scratch and test files).  Not
+    crash-safe: drivers may not import ``mapping.fileio``, so callers keeping a file that
+    matters write ``calibration_text`` with ``write_text_atomic`` themselves."""
+    Path(path).write_text(calibration_text(calib))
 
 
 def as_calibration(calib) -> StereoCalibration:

@@ -16,8 +16,10 @@ Replay pushes every pair through the same rectify + SGBM path as the live camera
 
 from __future__ import annotations
 
+import io
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +28,9 @@ from .messages import PanTiltState
 from .stereo import StereoFrame, StereoGrabber, frame_points, frame_points_global, sgbm_frame
 from .stereo_calib import (
     StereoCalibration,
+    calibration_text,
     load_calibration,
     rectified_calibration,
-    save_calibration,
 )
 from .stereo_points import CameraMount
 from .stereo_sgbm import SgbmParams, make_matcher
@@ -49,59 +51,79 @@ def decode_disparity(raw: np.ndarray) -> np.ndarray:
     return d
 
 
+#: How a recording's files reach the disk: ``write_file(path, data)``.
+WriteFile = Callable[[Path, bytes], object]
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """``img`` as a PNG file's bytes (8- or 16-bit, grey or BGR)."""
+    import cv2
+
+    try:
+        ok, buf = cv2.imencode(".png", img)
+    except cv2.error:   # e.g. a channel count PNG has not: a bad frame, not an OpenCV fault
+        ok = False
+    if not ok:
+        raise ValueError(f"stereo recording: OpenCV cannot encode a {img.dtype} image of shape "
+                         f"{img.shape} as PNG")
+    return buf.tobytes()
+
+
+def npy_bytes(arr: np.ndarray) -> bytes:
+    """``arr`` as a ``.npy`` file's bytes (``np.load`` reads them back)."""
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    return buf.getvalue()
+
+
 class SequenceWriter:
-    """Writes frames into a recording folder (the layout above)."""
+    """Writes frames into a recording folder (the layout above).
+
+    Every file of a frame is encoded in memory first and then handed whole to ``write_file``.
+    Drivers may not import ``mapping``, so the crash-safe writer is passed in from above:
+    ``cgamap stereo`` gives ``mapping.fileio.write_bytes_atomic`` (temp file, fsync, rename),
+    so a frame cut short by a full disk or a kill is never left under its final name.  The
+    default, ``Path.write_bytes``, writes in place (tests, scratch folders).  ``frames.jsonl``
+    gets a frame's line only after all of the frame's files are written."""
 
     def __init__(self, out: str | Path, save_points: bool = True, stride: int = 1,
                  max_depth: float = np.inf, global_frame: bool = False,
-                 mount: CameraMount | None = None):
+                 mount: CameraMount | None = None, write_file: WriteFile = Path.write_bytes):
         self.out = Path(out)
         self.global_frame = global_frame
         self.mount = mount
         self.save_points = save_points
         self.stride = stride
         self.max_depth = max_depth
+        self.write_file = write_file
         self._calib_written = False
         self.count = 0
 
-    def write(self, frame: StereoFrame) -> dict:
-        """Write one frame; returns its index record (also appended to frames.jsonl)."""
-        import cv2
-
-        self.out.mkdir(parents=True, exist_ok=True)
-        if not self._calib_written:
-            c = frame.calib  # images are stored rectified: store the rectified calibration
-            rect = rectified_calibration(c.fx, c.cx, c.cy, c.baseline, fy=c.fy, size=c.size,
-                                         doffs=c.doffs, R_rect=c.R_rect)
-            save_calibration(rect, self.out / "calibration.yaml")
-            self._calib_written = True
+    def encode(self, frame: StereoFrame) -> tuple[dict, dict[str, bytes]]:
+        """A frame's index record and its files (path relative to the folder -> bytes)."""
         name = f"{frame.seq:06d}"
         rec: dict = {"seq": frame.seq, "stamp_ns": frame.stamp_ns}
+        files: dict[str, bytes] = {}
 
-        def put(sub: str, ext: str, writer) -> str:
-            (self.out / sub).mkdir(exist_ok=True)
-            rel = f"{sub}/{name}{ext}"
-            writer(self.out / rel)
-            return rel
+        def put(sub: str, ext: str, data: bytes) -> None:
+            rec[sub] = f"{sub}/{name}{ext}"
+            files[rec[sub]] = data
 
-        rec["left"] = put("left", ".png", lambda p: cv2.imwrite(str(p), frame.left))
+        put("left", ".png", png_bytes(frame.left))
         if frame.right is not None:
-            rec["right"] = put("right", ".png", lambda p: cv2.imwrite(str(p), frame.right))
+            put("right", ".png", png_bytes(frame.right))
         if frame.disparity is not None:
-            rec["disparity"] = put("disparity", ".png", lambda p: cv2.imwrite(
-                str(p), encode_disparity(frame.disparity)))
+            put("disparity", ".png", png_bytes(encode_disparity(frame.disparity)))
         depth = frame.depth if frame.depth is not None else frame.ground_truth
         if depth is not None:
-            rec["depth"] = put("depth", ".npy",
-                               lambda p: np.save(p, np.asarray(depth, dtype=np.float32)))
+            put("depth", ".npy", npy_bytes(np.asarray(depth, dtype=np.float32)))
         if self.save_points:
             if self.global_frame:
                 pts = frame_points_global(frame, self.mount, max_depth=self.max_depth,
                                           stride=self.stride)
             else:
                 pts = frame_points(frame, max_depth=self.max_depth, stride=self.stride)
-            rec["points"] = put("points", ".npy",
-                                lambda p: np.save(p, pts.astype(np.float32)))
+            put("points", ".npy", npy_bytes(pts.astype(np.float32)))
             rec["n_points"] = int(len(pts))
             rec["points_frame"] = "global" if self.global_frame else "camera"
         if frame.pose_ref is not None:
@@ -109,6 +131,21 @@ class SequenceWriter:
         if frame.pantilt is not None:
             rec["pan"], rec["tilt"] = float(frame.pantilt.pan), float(frame.pantilt.tilt)
             rec["pantilt_stamp_ns"] = frame.pantilt.stamp_ns
+        return rec, files
+
+    def write(self, frame: StereoFrame) -> dict:
+        """Write one frame; returns its index record (also appended to frames.jsonl)."""
+        rec, files = self.encode(frame)
+        self.out.mkdir(parents=True, exist_ok=True)
+        if not self._calib_written:
+            c = frame.calib  # images are stored rectified: store the rectified calibration
+            rect = rectified_calibration(c.fx, c.cx, c.cy, c.baseline, fy=c.fy, size=c.size,
+                                         doffs=c.doffs, R_rect=c.R_rect)
+            self.write_file(self.out / "calibration.yaml", calibration_text(rect).encode())
+            self._calib_written = True
+        for rel, data in files.items():
+            (self.out / rel).parent.mkdir(exist_ok=True)
+            self.write_file(self.out / rel, data)
         with open(self.out / "frames.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
         self.count += 1

@@ -27,6 +27,7 @@ from cgamap.cga import (
 
 from .fileio import write_text_atomic
 from .planes import hull_2d, lift_uv, min_rect_2d, to_plane_uv
+from .render import write_image_atomic
 
 
 @dataclass(eq=False)  # identity, not field-wise ==: fields are numpy arrays
@@ -279,8 +280,9 @@ class PlaneMap:
         return hough_space_image(self.planes, size)
 
     def save_hough_png(self, path: str | Path, size: tuple[int, int] = (720, 400)) -> None:
-        if not cv2.imwrite(str(path), self.hough_image(size)):
-            raise OSError(f"{path}: cannot write PNG")
+        """The Hough-space picture, encoded in memory and written atomically: a failed write
+        leaves the previous picture whole."""
+        write_image_atomic(path, self.hough_image(size), "PNG")
 
 
 def hough_space_image(planes, size: tuple[int, int] = (720, 400),
