@@ -1,5 +1,5 @@
-"""CLI of the running daemon: ``cgamap status|watch|map export|record|demo`` and the socket
-mode of ``cgamap relocalize``.
+"""CLI of the running daemon: ``cgamap status|watch|map export|map optimize|record|demo`` and
+the socket mode of ``cgamap relocalize``.
 
 The socket is ``--socket``, else $CGAMAP_SOCKET, else /run/cgamap/cgamapd.sock (systemd's
 RuntimeDirectory).  ``cgamap record`` writes the daemon's device messages (a raw ``watch``)
@@ -24,22 +24,23 @@ from cgamap.daemon.export import FORMATS
 
 DEFAULT_SOCKET = "/run/cgamap/cgamapd.sock"
 REPLY_TIMEOUT = 10.0  # s: a daemon that does not answer a query within this is stuck
+OPTIMIZE_TIMEOUT = 600.0  # s: the finishing pass over 20 000 nodes takes minutes, not hours
 
 
 def socket_path(args: argparse.Namespace) -> str:
     return getattr(args, "socket", None) or os.environ.get("CGAMAP_SOCKET") or DEFAULT_SOCKET
 
 
-def _ask(args: argparse.Namespace, cmd: str, **kw) -> dict:
+def _ask(args: argparse.Namespace, cmd: str, timeout: float = REPLY_TIMEOUT, **kw) -> dict:
     from cgamap.daemon.server import DaemonUnavailable, request
 
     where = socket_path(args)
     try:
-        reply = request(where, cmd, timeout=REPLY_TIMEOUT, **kw)
+        reply = request(where, cmd, timeout=timeout, **kw)
     except DaemonUnavailable as exc:
         raise UsageError(f"{cmd}: {exc}", code=69) from None  # EX_UNAVAILABLE
     except TimeoutError:
-        raise UsageError(f"{cmd}: {where}: no reply within {REPLY_TIMEOUT:g} s (daemon "
+        raise UsageError(f"{cmd}: {where}: no reply within {timeout:g} s (daemon "
                          "stuck, or not cgamapd)", code=69) from None
     except OSError as exc:
         raise UsageError(f"{cmd}: {where}: {exc.strerror or exc}", code=69) from None
@@ -98,6 +99,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=float, default=None, help="m per pixel (png, pgm)")
     p.set_defaults(func=run_map_export)
 
+    p = map_group.add_parser("optimize", help="run the finishing pass on the daemon's map now")
+    _add_socket(p)
+    p.add_argument("--timeout", type=float, default=OPTIMIZE_TIMEOUT,
+                   help=f"seconds to wait for the reply (default {OPTIMIZE_TIMEOUT:g})")
+    p.set_defaults(func=run_map_optimize)
+
     if "relocalize" not in sub.choices:
         p = sub.add_parser("relocalize", help="ask the daemon to relocalise the robot")
         _add_socket(p)
@@ -153,6 +160,12 @@ def _map_group(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
 def _print(obj: dict) -> int:
     print(json.dumps(obj, indent=1))
     return 0
+
+
+def run_map_optimize(args: argparse.Namespace) -> int:
+    """``{"cmd": "optimize"}``: the daemon's reply (edges, nodes, ms, max_shift_m) as JSON."""
+    _positive("optimize", "--timeout", args.timeout)
+    return _print(_ask(args, "optimize", timeout=args.timeout))
 
 
 def run_status(args: argparse.Namespace) -> int:

@@ -84,6 +84,10 @@ class WheelOdometry:
 
 # -- the 2D mapper adapter ------------------------------------------------------------------
 
+# the on-demand finishing pass pairs each scan with at most this many spatial neighbours (plus
+# its predecessors): months of passes through one room must not make the pairs quadratic
+OPTIMIZE_MAX_NEAR = 12
+
 
 class Mapper2D:
     """``mapping.slam2d.Mapper`` behind a small interface: step, segments, state, set_pose.
@@ -98,12 +102,14 @@ class Mapper2D:
               and not is_dataclass(getattr(MapperParams, k, None))}
         # a daemon runs for months: the pose graph keeps its newest nodes (params2d.max_nodes)
         kw.setdefault("max_nodes", 20_000)
-        # the neighbour pass belongs to a finished run (map build); a daemon never finishes,
-        # so it keeps no per-scan segments for it
+        # a daemon never finishes: the finishing pass runs on demand (``optimize``), so the
+        # mapper's own pass stays off while it keeps each kept node's segments for it (they
+        # are compacted away with their nodes)
         self._make = lambda pose: Mapper(
             MapperParams(mount=mount, neighbours=NeighbourParams(enabled=False), **kw),
             initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
+        self.m.keep_scans = True
         self._pose = np.zeros(3)
         self._field = None       # the map's distance field for relocalisation, and the
         self._field_key = None   # (map, scans, segments) it was built for
@@ -139,7 +145,27 @@ class Mapper2D:
         names = {f.name for f in fields(LineMap)}
         self._pose = np.asarray(st["pose"], dtype=float)
         self.m = self._make(tuple(self._pose))
+        self.m.keep_scans = True
         self.m.map = LineMap(**{k: v for k, v in st["map"].items() if k in names})
+
+    def optimize_job(self) -> Any:
+        """The finishing pass on a snapshot of the kept nodes (``Mapper.finishing_job``),
+        with the pass's parameters enabled and each node's spatial pairs bounded."""
+        from dataclasses import replace
+
+        NP = replace(self.m.params.neighbours, enabled=True)
+        job = self.m.finishing_job(NP, max_near=OPTIMIZE_MAX_NEAR)
+        job.owner = self.m
+        return job
+
+    def apply_optimize(self, job: Any) -> dict:
+        """Adopt a computed job; a mapper replaced meanwhile (checkpoint load) ignores it."""
+        if getattr(job, "owner", None) is not self.m:
+            raise RuntimeError("the map was replaced while optimising; nothing applied")
+        out = self.m.apply_finish(job)
+        if self.m.count and self.m.last_odom is not None:  # not re-anchored since its scan
+            self._pose = self.m.base_pose(self.m.graph.poses[-1])
+        return out
 
     def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float] | None:
         """Global pose of ``scan`` in the map by Hough-domain relocalisation, or None."""
@@ -281,6 +307,8 @@ class MappingLoop:
         self._map_segments = 0
         self.odometry_expected = odom_dev is not None
         self.scan_odometry = False
+        self._optimize_job: Any = None  # the finishing pass being computed, if any
+        self.last_optimize: dict | None = None
 
     # -- inputs ---------------------------------------------------------------------------
     def handle(self, name: str, msg: Any) -> None:
@@ -420,6 +448,66 @@ class MappingLoop:
         self.counts["relocalized"] += 1
         return {"ok": True, "pose": self.pose_list(), "score": score}
 
+    # -- the finishing pass on demand ------------------------------------------------------
+    # Computed on a snapshot, applied between scans: the pass over 20 000 nodes takes seconds
+    # to minutes, and the scans must keep flowing meanwhile.  A time budget in the map thread
+    # would cut the pass short (half a pass leaves the graph with some neighbour edges and
+    # not others); a snapshot needs only copies of the graph's lists and the kept scans'
+    # segments (no copy of arrays), the computation touches nothing the map thread changes,
+    # and the apply step (index shift for compacted nodes, poses, map rebuild) is bounded by
+    # the graph and map sizes.  Scans mapped meanwhile follow the newest snapshot node.
+    def optimize_begin(self) -> Any:
+        """Snapshot for the finishing pass (call under the loop's lock); ValueError when
+        one is already running or there is no mapper that keeps its scans."""
+        if self._optimize_job is not None:
+            raise ValueError("already running; wait for its reply")
+        if self.mapper is None or not hasattr(self.mapper, "optimize_job"):
+            raise ValueError("no 2D mapper")
+        job = self.mapper.optimize_job()
+        job.t0 = time.perf_counter()
+        self._optimize_job = job
+        return job
+
+    def optimize_end(self, job: Any) -> dict:
+        """Apply a computed job (call under the loop's lock): the map follows the new poses
+        (the next checkpoint saves it); returns the reply's figures."""
+        if job is not self._optimize_job:
+            raise ValueError("not the running optimisation")
+        try:
+            got = self.mapper.apply_optimize(job)
+        finally:
+            self._optimize_job = None
+        if got["edges"]:
+            self.pose = self.mapper.pose
+            self.map_version += 1
+        out = {"edges": int(got["edges"]), "nodes": int(got["nodes"]),
+               "snapshot_nodes": int(job.nodes), "pairs": int(job.pairs),
+               "max_shift_m": round(float(got["max_shift_m"]), 4),
+               "ms": round(1000 * (time.perf_counter() - job.t0), 1)}
+        self.counts["optimized"] += 1
+        self.last_optimize = out
+        self._event("optimize", dict(out))
+        return out
+
+    def optimize_abort(self, job: Any) -> None:
+        """Forget a job that failed or was abandoned (call under the loop's lock)."""
+        if job is self._optimize_job:
+            self._optimize_job = None
+
+    @property
+    def optimizing(self) -> bool:
+        return self._optimize_job is not None
+
+    def optimize(self) -> dict:
+        """The whole pass in the calling thread (a single-threaded user, tests)."""
+        job = self.optimize_begin()
+        try:
+            job.run()
+        except BaseException:
+            self.optimize_abort(job)
+            raise
+        return self.optimize_end(job)
+
     def set_pose(self, pose, reason: str = "set-pose") -> None:
         self.pose = np.asarray(pose, dtype=float)
         if self.mapper is not None:
@@ -509,7 +597,8 @@ class MappingLoop:
                 "map": {"segments": len(self.segments()), "planes": len(self.planes.planes),
                         "version": self.map_version},
                 "counts": dict(self.counts), "pending_scans": len(self.pending),
-                "timing_ms": {k: round(v, 2) for k, v in self.timing.items()}}
+                "timing_ms": {k: round(v, 2) for k, v in self.timing.items()},
+                "optimize": {"running": self.optimizing, "last": self.last_optimize}}
 
     def map_json(self) -> dict:
         seg = self.segments()

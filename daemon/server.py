@@ -4,8 +4,9 @@ A request is one line: a JSON object ``{"cmd": "status"}`` (or just the word ``s
 Commands: ``status``, ``map``, ``trajectory``, ``watch`` (then a stream of event lines until
 the client hangs up; ``{"cmd": "watch", "raw": true}`` adds every device message, which is
 what ``cgamap record`` writes), ``relocalize``, ``checkpoint``, ``set-pose`` (``x``, ``y``,
-``theta``), ``version``.  Every reply is one JSON object with ``"class"``; errors are
-``{"class": "error", "error": "..."}``.  TCP is off unless configured (127.0.0.1 by default).
+``theta``), ``optimize`` (the finishing pass; replies when done), ``version``.  Every reply
+is one JSON object with ``"class"``; errors are ``{"class": "error", "error": "..."}``.  TCP
+is off unless configured (127.0.0.1 by default).
 """
 
 from __future__ import annotations

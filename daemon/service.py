@@ -59,6 +59,7 @@ class Daemon:
         self.loaded_from: str | None = None
         self.checkpoint_failures = 0
         self.last_checkpoint_error: str | None = None
+        self.optimize_thread: threading.Thread | None = None  # the periodic pass, if running
 
     # -- construction -----------------------------------------------------------------------
     def _build_supervisor(self, cfg: dict) -> Supervisor:
@@ -123,6 +124,8 @@ class Daemon:
         # that never appears must not hold the service in "activating" until systemd kills it
         ready_at = time.monotonic() + self.cfg["supervisor"]["ready_timeout"]
         ready = False
+        every = self.cfg["mapping"].get("optimize_every_s", 0.0)
+        next_optimize = time.monotonic() + every
         while not self.stop_event.is_set():
             if not ready and (self.supervisor.all_running() or time.monotonic() >= ready_at):
                 ready = True
@@ -151,6 +154,9 @@ class Daemon:
             if now >= next_status:
                 next_status = now + 2.0
                 notify.status(self.status_line())
+            if every and now >= next_optimize:
+                next_optimize = now + every
+                self._optimize_in_background()
             if self.replay and self.supervisor.all_finished():
                 with self.lock:
                     self._drain()
@@ -307,6 +313,50 @@ class Daemon:
     def cmd_checkpoint(self, req: dict) -> dict:
         with self.lock:
             return self.checkpoint("request")
+
+    def cmd_optimize(self, req: dict) -> dict:
+        """The finishing pass over the kept nodes (MappingLoop.optimize_begin): computed here,
+        in the query thread, on a snapshot while the main thread keeps mapping, then applied
+        under the lock between two scans.  A second request while one runs is an error."""
+        return {"class": "optimize", **self.optimize()}
+
+    def optimize(self) -> dict:
+        with self.lock:
+            job = self.loop.optimize_begin()  # ValueError: already running
+        try:
+            job.run(stop=self.stop_event.is_set)
+        except BaseException:
+            with self.lock:
+                self.loop.optimize_abort(job)
+            raise
+        with self.lock:
+            if self.stop_event.is_set():
+                self.loop.optimize_abort(job)
+                raise ValueError("the daemon is stopping; nothing applied")
+            try:
+                return self.loop.optimize_end(job)
+            except RuntimeError as exc:  # the map was replaced meanwhile
+                raise ValueError(str(exc)) from None
+
+    def _optimize_in_background(self) -> None:
+        """The periodic pass (mapping.optimize_every_s) in its own thread; skipped while a
+        pass (periodic or requested) is running."""
+        with self.lock:
+            if self.loop.optimizing or self.loop.mapper is None:
+                return
+
+        def run() -> None:
+            try:
+                got = self.optimize()
+                log.info("periodic optimisation: %d edges over %d nodes, max shift %.3f m, "
+                         "%.0f ms", got["edges"], got["nodes"], got["max_shift_m"], got["ms"])
+            except ValueError as exc:
+                log.info("periodic optimisation skipped: %s", exc)
+            except Exception:  # noqa: BLE001 - the map stays as it was
+                log.exception("periodic optimisation failed")
+
+        self.optimize_thread = threading.Thread(target=run, name="optimize", daemon=True)
+        self.optimize_thread.start()
 
     def cmd_set_pose(self, req: dict) -> dict:
         pose = [float(req[k]) for k in ("x", "y", "theta")]

@@ -168,8 +168,15 @@ class Mapper:
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
+        # the finishing pass needs each node's own segments: kept when the pass is enabled,
+        # or when the owner asks (the daemon runs the pass on demand, :meth:`finishing_job`)
+        self.keep_scans = self.params.neighbours.enabled
         self.neighbour_edges = 0
-        self._neighbours_from: int | None = None  # graph edges from here on: neighbour pass
+        self.dropped = 0  # nodes dropped by :meth:`compact` so far (node numbers shift)
+        # the graph's edges [n0, n1) are the last neighbour pass's; the scan-to-map edges
+        # before ``_weighted`` already count NeighbourParams.sequential_weight
+        self._neighbour_block = (0, 0)
+        self._weighted = 0
         self.loop_stats = {"tracked": 0, "tried": 0, "no_pose": 0, "low_score": 0,
                            "unconfirmed": 0,
                            "ambiguous": 0}
@@ -300,14 +307,19 @@ class Mapper:
             setattr(g, name, [getattr(g, name)[e] for e in kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = self.travel[cut:]
-        self.scans = self.scans[cut:]
+        self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
+        # edge numbers of the neighbour block shift with the edges dropped before them
+        n0, n1 = self._neighbour_block
+        self._neighbour_block = (int(np.searchsorted(kept, n0)), int(np.searchsorted(kept, n1)))
+        self._weighted = int(np.searchsorted(kept, self._weighted))
+        self.dropped += cut
         self.last_opt -= cut
         self.last_loop -= cut
         return cut
 
     def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
         P = self.params
-        if P.neighbours.enabled and len(self.scans) == node:
+        if self.keep_scans and len(self.scans) == node:
             self.scans.append((seg.a, seg.b))
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
@@ -510,63 +522,70 @@ class Mapper:
     def neighbour_pairs(self, NP: NeighbourParams | None = None) -> np.ndarray:
         """(p, 2) node pairs j < i for the neighbour pass: positions within ``radius`` in the
         current estimate, and each node with its ``previous`` predecessors."""
-        NP = NP or self.params.neighbours
-        X = self.poses
-        n = len(X)
-        near = cKDTree(X[:, :2]).query_pairs(NP.radius, output_type="ndarray")
-        i = np.arange(n)
-        seq = [np.column_stack([i[k:] - k, i[k:]]) for k in range(1, NP.previous + 1)]
-        pairs = np.concatenate([np.sort(near, axis=1).reshape(-1, 2), *seq]).astype(int)
-        pairs = np.unique(pairs, axis=0)
-        counts = np.array([len(a) for a, _ in self.scans])
-        keep = (counts[pairs[:, 0]] >= 2) & (counts[pairs[:, 1]] >= 2)
-        return pairs[keep]
+        return neighbour_pairs(self.poses, self.scans, NP or self.params.neighbours)
 
     def _neighbour_edges(self, NP: NeighbourParams | None = None) -> int:
-        """The finishing pass (:class:`NeighbourParams`): scan i's segments against scan j's
-        for every neighbour pair (solved in batches, :func:`.correction.correct_batch`); the
-        good matches become robust edges carrying the matches' own information, and the
-        scan-to-map steps' edges are down-weighted.  Returns the edges added."""
+        """The finishing pass (:class:`NeighbourParams`) on this graph, in place: the good
+        scan-to-scan matches (:func:`neighbour_matches`) replace the previous pass's edges.
+        Returns the edges added."""
         NP = NP or self.params.neighbours
         if len(self.scans) != self.count or self.count < 2:
             return 0
-        X = self.poses
-        pairs = self.neighbour_pairs(NP)
-        g = self.graph
-        added = 0
-        f_t, f_r = NP.floor
-        floor = np.diag([f_t ** 2, f_t ** 2, f_r ** 2])
-        new_edges = []
-        for c0 in range(0, len(pairs), NP.chunk):
-            j, i = pairs[c0:c0 + NP.chunk].T
-            src_a, src_b = _pad([self.scans[k] for k in i], 0.0)
-            dst_a, dst_b = _pad([self.scans[k] for k in j], 1e6)  # padding never matches
-            res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), relative(X[j], X[i]),
-                                NP.prior_step, NP.correction)
-            # the matches' own information (the prior taken out): along a corridor the pair
-            # says nothing, and its edge must not pin the current estimate there.
-            # (H^-1 + F)^-1 written as H (I + F H)^-1, which holds for a singular H too
-            info = res.info_data @ np.linalg.inv(np.eye(3) + floor @ res.info_data)
-            info = 0.5 * (info + np.swapaxes(info, 1, 2))
-            best = np.linalg.eigvalsh(info[:, :2, :2])[:, -1]  # the best-known direction
-            ok = (best >= NP.max_std ** -2) & (res.matched_fraction >= NP.min_matched)
-            for k in np.nonzero(ok)[0]:
-                new_edges.append((int(j[k]), int(i[k]), res.pose[k], info[k]))
+        new_edges = neighbour_matches(self.poses, self.scans, NP)
         if not new_edges:
             return 0
-        if self._neighbours_from is None:
-            self._neighbours_from = len(g.ei)
-            for e in range(len(g.ei)):
-                if not g.loop[e]:
-                    g.info[e] = g.info[e] * NP.sequential_weight
-        # a later round's edges replace the previous round's (appended last, after all others)
-        for name in ("ei", "ej", "z", "info", "loop"):
-            setattr(g, name, getattr(g, name)[:self._neighbours_from])
-        for j, i, z, info in new_edges:
-            g.add_edge(j, i, z, info, loop=True)
-            added += 1
-        self.neighbour_edges = added
-        return added
+        self._neighbour_block, self._weighted = _replace_neighbour_edges(
+            self.graph, self._neighbour_block, self._weighted, new_edges, NP)
+        self.neighbour_edges = len(new_edges)
+        return len(new_edges)
+
+    def finishing_job(self, NP: NeighbourParams | None = None, max_near: int = 0) -> FinishJob:
+        """The neighbour pass of :meth:`finish` on a copy of the graph and the kept scans, to
+        be computed anywhere (:meth:`FinishJob.run` touches nothing of this mapper) and
+        applied with :meth:`apply_finish` -- how a mapper that never finishes (the daemon)
+        gets the pass without stopping its scans.  ``max_near`` bounds the spatial pairs to
+        each node's nearest that many (0: all within the radius)."""
+        g = self.graph
+        if len(self.scans) != self.count:
+            raise ValueError("this mapper keeps no per-scan segments (keep_scans)")
+        copy = PoseGraph([p.copy() for p in g.poses], list(g.ei), list(g.ej), list(g.z),
+                         list(g.info), list(g.loop))
+        return FinishJob(NP or self.params.neighbours, copy, list(self.scans),
+                         list(self.anchors), self.dropped, self._neighbour_block,
+                         self._weighted, max_near)
+
+    def apply_finish(self, job: FinishJob) -> dict:
+        """Adopt a computed :class:`FinishJob`: its edges replace the previous pass's, its
+        poses replace the snapshot's nodes (nodes added since follow the newest snapshot node
+        rigidly, up to a re-anchor), and the map is rebuilt from them.  Nodes compacted away
+        meanwhile drop out with their edges.  Returns figures (edges, nodes, max_shift_m)."""
+        out = {"edges": 0, "nodes": self.count, "max_shift_m": 0.0}
+        if job.poses is None or not job.edges:
+            return out
+        cut = self.dropped - job.base     # nodes compacted away since the snapshot
+        n_snap = len(job.poses)
+        old = self.poses
+        new = old.copy()
+        k = np.arange(max(cut, 0), n_snap)
+        new[k - cut] = job.poses[k]
+        ref = n_snap - 1 - cut             # the newest snapshot node, live numbering
+        later = [a for a in self.anchors if a > ref]
+        stop = min(later) if later else self.count
+        if ref >= 0 and stop > ref + 1:
+            # the scans mapped while the job ran: moved with the chain they hang on
+            new[ref + 1:stop] = compose(new[ref], relative(old[ref], old[ref + 1:stop]))
+        edges = [(j - cut, i - cut, z, info) for j, i, z, info in job.edges if j - cut >= 0]
+        if not edges:
+            return out
+        self.graph.poses = list(new)
+        self._neighbour_block, self._weighted = _replace_neighbour_edges(
+            self.graph, self._neighbour_block, self._weighted, edges, job.params)
+        self.neighbour_edges = len(edges)
+        refresh(self.map, new)
+        dedupe(self.map, self.params.map)
+        self.optimizations += 1
+        shift = float(np.hypot(*(new[:, :2] - old[:, :2]).T).max()) if len(new) else 0.0
+        return {"edges": len(edges), "nodes": self.count, "max_shift_m": shift}
 
     def refine(self) -> None:
         """Align each scan's own segments (kept as contributions) with the whole map, then
@@ -590,3 +609,131 @@ class Mapper:
             X[node] = correct_pose(seg, m.a, m.b, X[node], 0.0, cp, index).pose
         self.graph.poses = list(X)
         refresh(m, X)
+
+
+def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams,
+                    max_near: int = 0) -> np.ndarray:
+    """(p, 2) node pairs j < i for the neighbour pass: positions ``X`` within ``radius``
+    (each node's nearest ``max_near`` of them when > 0: a robot that passes one spot for
+    months must not make the pairs quadratic), and each node with its ``previous``
+    predecessors; nodes with fewer than two segments left out."""
+    n = len(X)
+    tree = cKDTree(X[:, :2])
+    if max_near > 0:
+        d, nb = tree.query(X[:, :2], k=min(max_near + 1, n), distance_upper_bound=NP.radius)
+        d, nb = d.reshape(n, -1), nb.reshape(n, -1)
+        own = np.broadcast_to(np.arange(n)[:, None], nb.shape)
+        ok = np.isfinite(d) & (nb != own)
+        near = np.column_stack([own[ok], nb[ok]])
+    else:
+        near = tree.query_pairs(NP.radius, output_type="ndarray")
+    i = np.arange(n)
+    seq = [np.column_stack([i[k:] - k, i[k:]]) for k in range(1, NP.previous + 1)]
+    pairs = np.concatenate([np.sort(near, axis=1).reshape(-1, 2), *seq]).astype(int)
+    pairs = np.unique(pairs, axis=0)
+    counts = np.array([len(a) for a, _ in scans])
+    keep = (counts[pairs[:, 0]] >= 2) & (counts[pairs[:, 1]] >= 2)
+    return pairs[keep]
+
+
+def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
+                      pairs: np.ndarray | None = None,
+                      stop=None) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """The finishing pass's matching (:class:`NeighbourParams`): scan i's segments against
+    scan j's for every neighbour pair (solved in batches, :func:`.correction.correct_batch`);
+    the good matches as edges (j, i, z, info) carrying the matches' own information.
+    ``pairs`` defaults to :func:`neighbour_pairs`; ``stop()`` true between batches abandons
+    the pass (returns [])."""
+    pairs = neighbour_pairs(X, scans, NP) if pairs is None else pairs
+    f_t, f_r = NP.floor
+    floor = np.diag([f_t ** 2, f_t ** 2, f_r ** 2])
+    new_edges = []
+    for c0 in range(0, len(pairs), NP.chunk):
+        if stop is not None and stop():
+            return []
+        j, i = pairs[c0:c0 + NP.chunk].T
+        src_a, src_b = _pad([scans[k] for k in i], 0.0)
+        dst_a, dst_b = _pad([scans[k] for k in j], 1e6)  # padding never matches
+        res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), relative(X[j], X[i]),
+                            NP.prior_step, NP.correction)
+        # the matches' own information (the prior taken out): along a corridor the pair
+        # says nothing, and its edge must not pin the current estimate there.
+        # (H^-1 + F)^-1 written as H (I + F H)^-1, which holds for a singular H too
+        info = res.info_data @ np.linalg.inv(np.eye(3) + floor @ res.info_data)
+        info = 0.5 * (info + np.swapaxes(info, 1, 2))
+        best = np.linalg.eigvalsh(info[:, :2, :2])[:, -1]  # the best-known direction
+        ok = (best >= NP.max_std ** -2) & (res.matched_fraction >= NP.min_matched)
+        for k in np.nonzero(ok)[0]:
+            new_edges.append((int(j[k]), int(i[k]), res.pose[k], info[k]))
+    return new_edges
+
+
+def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int,
+                             edges: list, NP: NeighbourParams) -> tuple[tuple[int, int], int]:
+    """Put a neighbour pass's edges (robust) in ``g`` in place of the previous pass's (the
+    edges ``block``); the scan-to-map steps' edges from ``weighted`` on are down-weighted to
+    ``sequential_weight`` (the earlier ones already are).  Returns the new block and mark."""
+    n0, n1 = block
+    if n1 > n0:
+        for name in ("ei", "ej", "z", "info", "loop"):
+            del getattr(g, name)[n0:n1]
+        weighted -= n1 - n0 if weighted >= n1 else 0
+    for e in range(weighted, len(g.ei)):
+        if not g.loop[e]:
+            g.info[e] = g.info[e] * NP.sequential_weight
+    n0 = len(g.ei)
+    for j, i, z, info in edges:
+        g.add_edge(j, i, z, info, loop=True)
+    return (n0, len(g.ei)), len(g.ei)
+
+
+@dataclass
+class FinishJob:
+    """The finishing pass (``rounds`` of :func:`neighbour_matches`, each followed by a graph
+    solve, the first coarse as in :meth:`Mapper.finish`) on a snapshot of a mapper's graph
+    and scans; :meth:`run` works on the snapshot only, so it may run in another thread."""
+
+    params: NeighbourParams
+    graph: PoseGraph
+    scans: list
+    anchors: list
+    base: int                      # the mapper's ``dropped`` at the snapshot
+    block: tuple[int, int]
+    weighted: int
+    max_near: int = 0
+    edges: list = field(default_factory=list)  # the last round's (j, i, z, info)
+    poses: np.ndarray | None = None            # the snapshot's nodes, re-optimised
+    pairs: int = 0                             # scan pairs matched, all rounds
+
+    @property
+    def nodes(self) -> int:
+        return len(self.graph.poses)
+
+    def run(self, stop=None) -> FinishJob:
+        """Compute the edges and poses; ``stop()`` true abandons (edges stay empty)."""
+        NP = self.params
+        g = self.graph
+        if self.nodes < 2:
+            return self
+        for r in range(NP.rounds):
+            rp = NP
+            if r == 0 and NP.coarse_first:
+                rp = replace(NP, radius=NP.radius * 1.6, correction=replace(
+                    NP.correction, gates=(1.0, *NP.correction.gates),
+                    angle_gates_deg=(20.0, *NP.correction.angle_gates_deg)))
+            X = np.array(g.poses)
+            pairs = neighbour_pairs(X, self.scans, rp, self.max_near)
+            self.pairs += len(pairs)
+            got = neighbour_matches(X, self.scans, rp, pairs, stop)
+            if stop is not None and stop():
+                self.edges, self.poses = [], None
+                return self
+            if not got:
+                continue
+            self.block, self.weighted = _replace_neighbour_edges(
+                g, self.block, self.weighted, got, NP)
+            g.optimize(fixed=self.anchors)
+            self.edges = got
+        if self.edges:
+            self.poses = np.array(g.poses)
+        return self

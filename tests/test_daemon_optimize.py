@@ -1,0 +1,275 @@
+"""The daemon's finishing pass on demand (``{"cmd": "optimize"}``): a simulated run with noisy
+odometry through the mapping loop, then the pass over the kept nodes -- the trajectory and map
+against the simulation's truth, the per-scan store bounded with the nodes, scans mapped and
+nodes compacted while a pass computes, one pass at a time, the socket and the CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import threading
+
+import numpy as np
+import pytest
+from cgamap.daemon import config as config_mod
+from cgamap.daemon.demo import map_error
+from cgamap.daemon.loop import MappingLoop
+from cgamap.drivers.messages import LaserScan, OdometryPose
+from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.evaluation import align_rigid_2d, ate
+from cgamap.mapping.odometry import add_odometry_noise
+from synth2d import scan
+
+FIELDS = {"edges", "nodes", "ms", "max_shift_m"}
+
+
+def cfg(**mapping) -> dict:
+    return config_mod.validate({"devices": {}, "mapping": {
+        "map3d": False, "min_travel": 0.0, "min_turn": 0.0, "scan_max_rate": 1000.0,
+        **mapping}})
+
+
+class Run:
+    """A world's path (``laps`` times), the scans its true poses see, noisy odometry."""
+
+    def __init__(self, name: str, laps: float, seed: int):
+        self.world = get_world(name)
+        w = self.world
+        t = np.arange(0, laps * w.path_length / w.speed, 0.6 / w.speed)
+        self.truth = np.column_stack(w.trajectory(t))
+        self.odo = add_odometry_noise(self.truth, "high", seed=seed)
+        self.fed = 0
+
+    def feed(self, loop: MappingLoop, n: int | None = None) -> None:
+        """The next ``n`` scans (default: the rest), each with its instant's odometry."""
+        stop = len(self.truth) if n is None else min(self.fed + n, len(self.truth))
+        for k in range(self.fed, stop):
+            stamp = int(k * 1e8) + 1
+            o = self.odo[k]
+            loop.handle("base", OdometryPose(stamp_ns=stamp - 1, x=o[0], y=o[1], theta=o[2]))
+            s = scan(self.world, self.truth[k], n=180, sigma=0.01, seed=k)
+            loop.handle("laser", LaserScan(seq=k, stamp_ns=stamp, angle_min=s.angle_min,
+                                           angle_increment=s.angle_increment, ranges=s.ranges))
+            loop.process(odometry_live=False)
+        self.fed = stop
+
+    def errors(self, loop: MappingLoop) -> tuple[float, float]:
+        """ATE (m) of the kept nodes and the map's p95 distance to the true walls (m)."""
+        m = loop.mapper.m
+        est, ref = m.poses, self.truth[self.fed - m.count:self.fed]
+        T = align_rigid_2d(est, ref)
+        return ate(est, ref)["ate_trans_m"], map_error(loop.segments(), self.world,
+                                                         T)["wall_dist_p95_m"]
+
+
+@pytest.mark.parametrize("name, laps, seed, gain", [("loop", 2, 2, 0.6), ("corridor", 2, 3, 1.0)])
+def test_optimize_corrects_the_drift_and_moves_the_map(name, laps, seed, gain):
+    """The loop world (two laps: drift the online closures leave) gets clearly better; the
+    corridor (along-corridor position barely observable) must not get worse."""
+    run = Run(name, laps, seed)
+    loop = MappingLoop(cfg())
+    run.feed(loop)
+    assert len(loop.mapper.m.scans) == loop.mapper.m.count  # one kept segment set per node
+    ate0, map0 = run.errors(loop)
+    version = loop.map_version
+    got = loop.optimize()
+    ate1, map1 = run.errors(loop)
+    print(name, "optimize:", got, f"ATE {ate0:.4f} -> {ate1:.4f} m, map p95 {map0:.4f} -> "
+          f"{map1:.4f} m")
+    assert FIELDS <= set(got) and got["edges"] > got["nodes"]  # several neighbours per scan
+    assert got["nodes"] == loop.mapper.m.count and got["max_shift_m"] > 0
+    assert ate1 <= ate0 * gain + 0.003, (ate0, ate1)
+    assert map1 <= map0 + 0.01, (map0, map1)
+    # the map follows the new poses, and the checkpoint holds that map
+    assert loop.map_version > version and loop.status()["optimize"]["last"] == got
+    st = loop.state()["map2d"]["map"]
+    assert np.allclose(np.concatenate([st["a"], st["b"]], 1), loop.segments())
+    # a second pass from there: the edges replace the first pass's, the graph does not grow
+    edges = len(loop.mapper.m.graph.ei)
+    again = loop.optimize()
+    assert len(loop.mapper.m.graph.ei) == edges - got["edges"] + again["edges"]
+    assert run.errors(loop)[0] <= ate1 * 1.1 + 0.002
+
+
+def test_scans_are_kept_for_the_kept_nodes_only():
+    """max_nodes bounds the per-scan store with the graph, before and after a pass."""
+    run = Run("loop", 1.5, 1)
+    loop = MappingLoop(cfg(params2d={"max_nodes": 30}))
+    m = loop.mapper.m
+    run.feed(loop, 70)
+    assert m.dropped > 0 and 0 < m.count <= 30 and len(m.scans) == m.count
+    got = loop.optimize()
+    g = m.graph
+    assert got["nodes"] == m.count and got["edges"] > 0
+    assert max(max(g.ei), max(g.ej)) < m.count
+    n0, n1 = m._neighbour_block
+    assert n1 - n0 == got["edges"] and all(g.loop[n0:n1])
+    dropped = m.dropped
+    run.feed(loop)  # the rest of the run: the oldest nodes go with their scans and edges
+    assert m.dropped > dropped and 0 < m.count <= 30 and len(m.scans) == m.count
+    n0, n1 = m._neighbour_block
+    assert 0 <= n0 <= n1 <= len(g.ei) and all(g.loop[n0:n1])
+    assert max(max(g.ei), max(g.ej)) < m.count
+    assert loop.optimize()["edges"] > 0
+
+
+def test_scans_mapped_and_nodes_compacted_while_a_pass_computes():
+    """The pass computes on a snapshot while scans go on (and compact the graph); applied
+    later, the newer scans follow, the dropped nodes' edges are left out, nothing is
+    worse than mapping without the pass."""
+    results = {}
+    for apply in (False, True):
+        run = Run("loop", 2, 2)
+        loop = MappingLoop(cfg(params2d={"max_nodes": 110}))
+        run.feed(loop, 100)
+        job = loop.optimize_begin()
+        with pytest.raises(ValueError, match="already running"):
+            loop.optimize_begin()  # one pass at a time, no queue
+        run.feed(loop, 40)   # mapped meanwhile; past max_nodes the oldest nodes go
+        m = loop.mapper.m
+        assert m.dropped > 0
+        job.run()
+        if apply:
+            got = loop.optimize_end(job)
+            assert got["snapshot_nodes"] == 100 and got["nodes"] == m.count
+            assert got["edges"] > 0 and FIELDS <= set(got)
+            g = m.graph
+            assert max(max(g.ei), max(g.ej)) < m.count
+        else:
+            loop.optimize_abort(job)
+        assert not loop.optimizing
+        run.feed(loop)
+        results[apply] = run.errors(loop)
+    print("without / with the pass in the middle:", results)
+    assert results[True][0] <= results[False][0] * 1.05 + 0.003, results
+
+
+def test_a_replaced_map_or_a_new_chain_is_respected():
+    run = Run("room", 1, 0)
+    loop = MappingLoop(cfg())
+    run.feed(loop, 30)
+    job = loop.optimize_begin()
+    loop.load_state(loop.state())  # a checkpoint loaded meanwhile: a new mapper
+    job.run()
+    with pytest.raises(RuntimeError, match="replaced"):
+        loop.optimize_end(job)
+    assert not loop.optimizing
+    # a set-pose while the pass runs: the new chain stays where it was put
+    run2 = Run("room", 1, 0)
+    loop = MappingLoop(cfg())
+    run2.feed(loop, 30)
+    job = loop.optimize_begin()
+    loop.set_pose((5.0, 5.0, 1.0))
+    run2.feed(loop, 5)
+    m = loop.mapper.m
+    chain = m.poses[30:].copy()
+    job.run()
+    got = loop.optimize_end(job)
+    assert got["edges"] > 0
+    assert np.allclose(m.poses[30:], chain)
+
+
+@pytest.fixture
+def daemon(tmp_path):
+    """An in-process cgamapd (no devices) with its real query socket; the test feeds its
+    loop under its lock as the main thread would."""
+    from cgamap.daemon.server import QueryServer
+    from cgamap.daemon.service import Daemon
+
+    run = tempfile.mkdtemp(prefix="cgd-")  # AF_UNIX paths are short
+    c = cfg(optimize_every_s=0.0)
+    d = Daemon(c, state_dir=str(tmp_path / "state"), socket_path=os.path.join(run, "d.sock"))
+    d.server = QueryServer(d, d.socket_path)
+    d.server.start()
+    yield d
+    d.stop_event.set()
+    d.server.stop()
+    shutil.rmtree(run, ignore_errors=True)
+
+
+def test_optimize_over_the_socket_and_the_cli(daemon, monkeypatch, capsys):
+    """One request computes while the daemon maps; a second (socket or CLI) is refused with
+    a clear error, not queued; the first's reply carries the figures."""
+    from cgamap.daemon import cli
+    from cgamap.daemon.server import request
+    from cgamap.mapping.slam2d import FinishJob
+
+    d = daemon
+    run = Run("loop", 1, 4)
+    with d.lock:
+        run.feed(d.loop, 60)
+    entered, release = threading.Event(), threading.Event()
+    original = FinishJob.run
+
+    def held(self, stop=None):
+        entered.set()
+        release.wait(20)
+        return original(self, stop)
+
+    monkeypatch.setattr(FinishJob, "run", held)
+    replies = []
+    first = threading.Thread(target=lambda: replies.append(
+        request(d.socket_path, "optimize", timeout=60.0)), daemon=True)
+    first.start()
+    assert entered.wait(20)
+    second = request(d.socket_path, "optimize", timeout=10.0)
+    assert second["class"] == "error" and "already running" in second["error"], second
+    rc = cli.main(["map", "optimize", "--socket", str(d.socket_path), "--timeout", "10"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "optimize: already running" in err and "Traceback" not in err
+    with d.lock:
+        run.feed(d.loop, 10)  # the map thread is not held up by the pass
+        assert d.loop.counts["scans"] == 70
+    status = request(d.socket_path, "status", timeout=10.0)
+    assert status["optimize"]["running"] is True
+    release.set()
+    first.join(30)
+    assert not first.is_alive() and replies[0]["class"] == "optimize", replies
+    assert FIELDS <= set(replies[0]) and replies[0]["nodes"] == 70
+    assert replies[0]["snapshot_nodes"] == 60 and replies[0]["edges"] > 0
+    # the CLI's own request now goes through, printing the reply as JSON
+    assert cli.main(["map", "optimize", "--socket", str(d.socket_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["class"] == "optimize" and FIELDS <= set(out)
+    # and the next checkpoint holds the optimised map
+    assert d.command({"cmd": "checkpoint"})["class"] == "checkpoint"
+    saved = d.store.load()["loop"]["map2d"]["map"]
+    with d.lock:
+        assert np.allclose(np.concatenate([saved["a"], saved["b"]], 1), d.loop.segments())
+
+
+def test_the_periodic_pass_runs_in_the_daemon(tmp_path):
+    """mapping.optimize_every_s: the main loop starts the pass in the background."""
+    import signal
+    import time
+
+    from cgamap.daemon.service import Daemon
+
+    run_dir = tempfile.mkdtemp(prefix="cgd-")
+    d = Daemon(cfg(optimize_every_s=0.05), state_dir=str(tmp_path / "state"),
+               socket_path=os.path.join(run_dir, "d.sock"))
+    Run("room", 1, 0).feed(d.loop, 30)
+    done = threading.Event()
+
+    def stop_when_optimised():
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not d.loop.counts["optimized"]:
+            time.sleep(0.05)
+        done.set()
+        d.stop_event.set()
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    watcher = threading.Thread(target=stop_when_optimised, daemon=True)
+    watcher.start()
+    try:
+        assert d.run() == 0
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        d.stop_event.set()
+        watcher.join(35)
+        shutil.rmtree(run_dir, ignore_errors=True)
+    assert done.is_set() and d.loop.counts["optimized"] >= 1
+    assert d.loop.last_optimize["edges"] > 0
