@@ -13,9 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qsl, urlsplit
 
 import yaml
+from cgamap.drivers.transport import DeviceUrlError, parse_device_url
 from cgamap.drivers.yaml_errors import yaml_error_text
 
 EX_CONFIG = 78
@@ -111,26 +111,32 @@ def _check_params2d(v: dict) -> str | None:
 
 def check_url(url: str) -> str | None:
     """A device URL: ``serial:///dev/ttyUSB0?baudrate=38400``, ``tcp://host:port``,
-    ``sim://name``, ``file:///path/log.gz``, ``usb://`` (first device of the model)."""
-    parts = urlsplit(url)
-    if not parts.scheme and url.startswith("/"):
+    ``sim://name``, ``file:///path/log.gz``, ``usb://`` (first device of the model).
+
+    ``parse_device_url`` (the drivers' one parser) takes it apart and rejects what no driver
+    could open (no host:port, no device path, a bad baud rate); the config adds its own rules:
+    the scheme is written out, it is one the daemon runs, ``file://`` names a file, ``unit``/
+    ``id`` are whole numbers, and ``spy+`` tracing is for the byte-stream schemes."""
+    if url.startswith("/"):  # the drivers read a bare path as serial; a config spells it out
         return f"a bare device path {url!r}: write serial://{url}"
-    if parts.scheme not in URL_SCHEMES:
-        return f"unknown scheme {parts.scheme!r} in {url!r} (one of {', '.join(URL_SCHEMES)})"
-    if parts.scheme in ("serial", "file") and not parts.path.strip("/"):
+    if "://" not in url and url.strip():
+        return (f"no scheme in {url!r}: write one of {', '.join(URL_SCHEMES)} "
+                "(e.g. serial:///dev/ttyUSB0, tcp://host:port)")
+    try:
+        u = parse_device_url(url)
+    except DeviceUrlError as exc:
+        return str(exc)
+    if u.scheme not in URL_SCHEMES:
+        return f"unknown scheme {u.scheme!r} in {url!r} (one of {', '.join(URL_SCHEMES)})"
+    # the parser keeps a file:// URL whole as a handler URL: its path follows the "://"
+    if u.scheme in ("serial", "file") and not u.path.split("://", 1)[-1].strip("/"):
         return f"no device path in {url!r}"
-    if parts.scheme == "tcp":
-        try:
-            port = parts.port
-        except ValueError:
-            return f"bad port in {url!r}"
-        if not parts.hostname or not port:
-            return f"needs host and port, e.g. tcp://127.0.0.1:502, got {url!r}"
-    for key, value in parse_qsl(parts.query):
-        if key in ("baudrate", "unit", "id") and not value.isdigit():
+    if u.spy and u.scheme not in ("serial", "tcp"):
+        return f"spy+ (trace) is for serial:// and tcp:// devices, not {u.scheme}:// in {url!r}"
+    for key in ("unit", "id"):
+        value = u.options.get(key)
+        if value is not None and not value.isdigit():
             return f"query {key}={value!r} must be an integer"
-        if key == "baudrate" and int(value) <= 0:
-            return f"query baudrate={value!r} must be positive"
     return None
 
 
@@ -297,8 +303,7 @@ def _check_devices(cfg: dict, base: Path) -> None:
         if dev["model"] not in MODELS[dev["role"]]:
             raise ConfigError(f"{path}.model", f"{dev['model']!r} is not a {dev['role']} model "
                               f"(one of {', '.join(MODELS[dev['role']])})")
-        scheme = urlsplit(dev["url"]).scheme
-        if dev["model"] == "carmen" and scheme != "file":
+        if dev["model"] == "carmen" and parse_device_url(dev["url"]).scheme != "file":
             raise ConfigError(f"{path}.url", "a carmen log needs a file:// URL")
         _check_params(f"{path}.params", dev)
         if dev["hand_eye"]:
