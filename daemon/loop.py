@@ -86,7 +86,7 @@ class WheelOdometry:
 
 # the on-demand finishing pass pairs each scan with at most this many spatial neighbours (plus
 # its predecessors): months of passes through one room must not make the pairs quadratic
-OPTIMIZE_MAX_NEAR = 12
+OPTIMIZE_MAX_NEAR = 30
 
 
 class Mapper2D:
@@ -154,7 +154,7 @@ class Mapper2D:
         from dataclasses import replace
 
         NP = replace(self.m.params.neighbours, enabled=True)
-        job = self.m.finishing_job(NP, max_near=OPTIMIZE_MAX_NEAR)
+        job = self.m.finishing_job(NP, max_near=OPTIMIZE_MAX_NEAR, sweep=True)
         job.owner = self.m
         return job
 
@@ -307,6 +307,11 @@ class MappingLoop:
         self._map_segments = 0
         self.odometry_expected = odom_dev is not None
         self.scan_odometry = False
+        # scans older than the first odometry sample wait for it (skipped), for no longer
+        # than the devices get to start: see _before_odometry
+        self.odometry_wait_ns = int(1e9 * cfg.get("supervisor", {}).get("ready_timeout", 10.0))
+        self._first_scan_ns: int | None = None
+        self._first_odom_ns: int | None = None
         self._optimize_job: Any = None  # the finishing pass being computed, if any
         self.last_optimize: dict | None = None
 
@@ -348,6 +353,8 @@ class MappingLoop:
 
     def on_odometry(self, stamp_ns: int, pose) -> None:
         self.counts["odometry"] += 1
+        if self._first_odom_ns is None:
+            self._first_odom_ns = int(stamp_ns)
         self.odom.add(stamp_ns, pose)
 
     def process(self, final: bool = False, odometry_live: bool = True) -> int:
@@ -376,6 +383,9 @@ class MappingLoop:
     def on_scan(self, scan: LaserScan) -> None:
         t0 = time.perf_counter()
         self._last_scan = scan
+        if self._before_odometry(scan):
+            self.counts["scans_before_odometry"] += 1
+            return
         odom = self.odom_guess(scan.stamp_ns)
         if self._skip(scan, odom):
             self.counts["scans_skipped"] += 1
@@ -403,6 +413,22 @@ class MappingLoop:
         if n_map != self._map_segments:
             self._map_segments = n_map
             self._event("map", {"segments": n_map, "version": self.map_version})
+
+    def _before_odometry(self, scan: LaserScan) -> bool:
+        """Whether ``scan`` predates the odometry: a scan older than the first odometry sample
+        has no guess (the history would give it that later sample's pose), so the motion until
+        then would be missing from the map's first steps, their walls left behind as ghosts --
+        the laser streams before the base answers when the daemon starts, the more so on a
+        busy machine.  While odometry is expected such scans are not mapped, but only for
+        ``supervisor.ready_timeout`` of scans with no odometry at all: a base that never
+        answers must not stop the map."""
+        if not self.odometry_expected or self.scan_odometry:
+            return False
+        if self._first_scan_ns is None:
+            self._first_scan_ns = scan.stamp_ns
+        if self._first_odom_ns is None:
+            return scan.stamp_ns - self._first_scan_ns < self.odometry_wait_ns
+        return scan.stamp_ns < self._first_odom_ns
 
     def _skip(self, scan: LaserScan, odom: np.ndarray) -> bool:
         """Skip a scan taken too soon after the last mapped one, or with no motion since."""
@@ -482,6 +508,7 @@ class MappingLoop:
             self.map_version += 1
         out = {"edges": int(got["edges"]), "nodes": int(got["nodes"]),
                "snapshot_nodes": int(job.nodes), "pairs": int(job.pairs),
+               "sweep_edges": int(job.sweep_edges),
                "max_shift_m": round(float(got["max_shift_m"]), 4),
                "ms": round(1000 * (time.perf_counter() - job.t0), 1)}
         self.counts["optimized"] += 1

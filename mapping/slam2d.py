@@ -539,20 +539,25 @@ class Mapper:
         self.neighbour_edges = len(new_edges)
         return len(new_edges)
 
-    def finishing_job(self, NP: NeighbourParams | None = None, max_near: int = 0) -> FinishJob:
+    def finishing_job(self, NP: NeighbourParams | None = None, max_near: int = 0,
+                      sweep: bool = False) -> FinishJob:
         """The neighbour pass of :meth:`finish` on a copy of the graph and the kept scans, to
         be computed anywhere (:meth:`FinishJob.run` touches nothing of this mapper) and
         applied with :meth:`apply_finish` -- how a mapper that never finishes (the daemon)
         gets the pass without stopping its scans.  ``max_near`` bounds the spatial pairs to
-        each node's nearest that many (0: all within the radius)."""
+        each node's nearest that many (0: all within the radius); ``sweep`` adds the tracking
+        closures of :meth:`finish`'s sweep, from the kept scans (:func:`sweep_matches`)."""
         g = self.graph
         if len(self.scans) != self.count:
             raise ValueError("this mapper keeps no per-scan segments (keep_scans)")
         copy = PoseGraph([p.copy() for p in g.poses], list(g.ei), list(g.ej), list(g.z),
                          list(g.info), list(g.loop))
+        LP = self.params.loop
+        do_sweep = sweep and LP.enabled and LP.sweep_every > 0
         return FinishJob(NP or self.params.neighbours, copy, list(self.scans),
                          list(self.anchors), self.dropped, self._neighbour_block,
-                         self._weighted, max_near)
+                         self._weighted, max_near, LP if do_sweep else None,
+                         np.array(self.travel, float))
 
     def apply_finish(self, job: FinishJob) -> dict:
         """Adopt a computed :class:`FinishJob`: its edges replace the previous pass's, its
@@ -701,9 +706,12 @@ class FinishJob:
     block: tuple[int, int]
     weighted: int
     max_near: int = 0
-    edges: list = field(default_factory=list)  # the last round's (j, i, z, info)
+    sweep: LoopParams | None = None            # tracking closures first (None: not)
+    travel: np.ndarray | None = None           # odometry distance per node, for the sweep
+    edges: list = field(default_factory=list)  # the sweep's and the last round's edges
     poses: np.ndarray | None = None            # the snapshot's nodes, re-optimised
     pairs: int = 0                             # scan pairs matched, all rounds
+    sweep_edges: int = 0
 
     @property
     def nodes(self) -> int:
@@ -715,6 +723,17 @@ class FinishJob:
         g = self.graph
         if self.nodes < 2:
             return self
+        swept: list = []
+        if self.sweep is not None:
+            # as finish() does before its rounds: each revisit tied to its earlier visit's
+            # submap; the edges stay in the block with every round's
+            swept = sweep_matches(np.array(g.poses), self.scans, self.travel, self.sweep, stop)
+            self.sweep_edges = len(swept)
+            if swept:
+                self.block, self.weighted = _replace_neighbour_edges(
+                    g, self.block, self.weighted, swept, NP)
+                g.optimize(fixed=self.anchors)
+                self.edges = swept
         for r in range(NP.rounds):
             rp = NP
             if r == 0 and NP.coarse_first:
@@ -731,9 +750,71 @@ class FinishJob:
             if not got:
                 continue
             self.block, self.weighted = _replace_neighbour_edges(
-                g, self.block, self.weighted, got, NP)
+                g, self.block, self.weighted, swept + got, NP)
             g.optimize(fixed=self.anchors)
-            self.edges = got
+            self.edges = swept + got
         if self.edges:
             self.poses = np.array(g.poses)
         return self
+
+
+def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams,
+                  stop=None) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """:meth:`Mapper._sweep_closures` from kept scans instead of the map's contributions, all
+    candidates solved together: every ``sweep_every``-th scan against the submap (scans
+    +- ``window``) of its nearest earlier visit within ``sweep_radius``; a tracking closure
+    that fixes the pose in every direction and fits becomes an edge (j, i, z, info)."""
+    n = len(X)
+    i = np.arange(0, n, LP.sweep_every)
+    last = np.minimum(np.searchsorted(travel, travel[i] - LP.min_travel, side="right") - 1,
+                      i - LP.min_separation)
+    counts = np.array([len(a) for a, _ in scans])
+    i, last = i[(last >= 0) & (counts[i] >= 2)], last[(last >= 0) & (counts[i] >= 2)]
+    if not len(i):
+        return []
+    # the nearest earlier visit: among each scan's nearest few, the first old enough
+    k = min(n, 64)
+    d, nb = cKDTree(X[:, :2]).query(X[i, :2], k=k, distance_upper_bound=LP.sweep_radius)
+    d, nb = d.reshape(len(i), k), nb.reshape(len(i), k)
+    ok = np.isfinite(d) & (nb <= last[:, None])
+    has = ok.any(axis=1)
+    i, last = i[has], last[has]
+    j = nb[has, np.argmax(ok[has], axis=1)]
+    st, sr = LP.sigma
+    info = np.diag([st ** -2, st ** -2, sr ** -2])
+    edges = []
+    chunk = 128  # the submaps are ~window * 2 + 1 scans: more segments per problem
+    for c0 in range(0, len(i), chunk):
+        if stop is not None and stop():
+            return []
+        ii, jj, ll = i[c0:c0 + chunk], j[c0:c0 + chunk], last[c0:c0 + chunk]
+        subs, keep = [], []
+        for a, (jk, lk) in enumerate(zip(jj, ll, strict=True)):  # per scan pair, not per point
+            ks = list(range(max(jk - LP.window, 0), min(jk + LP.window, lk) + 1))
+            rel = relative(X[jk], X[ks])
+            parts = [(_move(scans[m][0], r), _move(scans[m][1], r))
+                     for m, r in zip(ks, rel, strict=True)]
+            sa = np.concatenate([p[0] for p in parts])
+            if len(sa) < 3:
+                continue
+            subs.append((sa, np.concatenate([p[1] for p in parts])))
+            keep.append(a)
+        if not keep:
+            continue
+        ii, jj = ii[keep], jj[keep]
+        src_a, src_b = _pad([scans[m] for m in ii], 0.0)
+        dst_a, dst_b = _pad(subs, 1e6)
+        res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), relative(X[jj], X[ii]),
+                            4.0, LP.tracking)
+        std = np.sqrt(np.linalg.eigvalsh(res.cov[:, :2, :2])[:, -1])
+        good = (std <= LP.max_std) & (res.matched_fraction >= max(0.5, LP.tracking_score)) & (
+            res.rms <= 0.05)
+        for q in np.nonzero(good)[0]:
+            edges.append((int(jj[q]), int(ii[q]), res.pose[q], info))
+    return edges
+
+
+def _move(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Points (k, 2) of a frame at ``pose`` (x, y, theta) in the outer frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return p @ np.array([[c, s], [-s, c]]) + pose[:2]

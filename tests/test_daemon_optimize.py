@@ -93,6 +93,32 @@ def test_optimize_corrects_the_drift_and_moves_the_map(name, laps, seed, gain):
     assert run.errors(loop)[0] <= ate1 * 1.1 + 0.002
 
 
+def test_optimize_on_the_intel_log_with_noisy_odometry(shared_data):
+    """Real data: the first 450 scans of the Intel log, its reference poses' increments with
+    the "high" odometry noise (seed 1); the pass (sweep closures, neighbour rounds) must
+    bring the daemon's trajectory clearly closer to the reference."""
+    import dataclasses
+
+    from cgamap.drivers.carmen import read_scans
+
+    scans = read_scans(shared_data("laser/intel-corrected.log.gz"))[:450]
+    odo = add_odometry_noise(np.array([s.pose_odom for s in scans]), "high", seed=1)
+    loop = MappingLoop(cfg(scan_max_rate=1e6))
+    for s, o in zip(scans, odo, strict=True):
+        loop.handle("laser", dataclasses.replace(s, pose_odom=tuple(o)))
+        loop.process(final=True)
+    index = {s.stamp_ns: k for k, s in enumerate(scans)}
+    ref = np.array([scans[index[int(r[0])]].pose_ref for r in loop.trajectory])
+    m = loop.mapper.m
+    assert m.count == len(ref) > 400
+    before = ate(m.poses, ref)["ate_trans_m"]
+    got = loop.optimize()
+    after = ate(m.poses, ref)["ate_trans_m"]
+    print("Intel 450 scans, seed 1:", got, f"ATE {before:.4f} -> {after:.4f} m")
+    assert got["sweep_edges"] > 0 and got["edges"] > got["nodes"]
+    assert after < 0.9 * before and after < 0.1, (before, after)
+
+
 def test_scans_are_kept_for_the_kept_nodes_only():
     """max_nodes bounds the per-scan store with the graph, before and after a pass."""
     run = Run("loop", 1.5, 1)
