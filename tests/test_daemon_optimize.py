@@ -223,6 +223,8 @@ def test_optimize_over_the_socket_and_the_cli(daemon, monkeypatch, capsys):
     from cgamap.mapping.slam2d import FinishJob
 
     d = daemon
+    empty = d.command({"cmd": "optimize"})  # nothing mapped yet: nothing to do, no error
+    assert empty["class"] == "optimize" and empty["edges"] == 0 and empty["nodes"] == 0
     run = Run("loop", 1, 4)
     with d.lock:
         run.feed(d.loop, 60)
