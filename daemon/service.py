@@ -60,6 +60,7 @@ class Daemon:
         self.checkpoint_failures = 0
         self.last_checkpoint_error: str | None = None
         self.optimize_thread: threading.Thread | None = None  # the periodic pass, if running
+        self._periodic_at = -1  # scans mapped when the last periodic pass started
 
     # -- construction -----------------------------------------------------------------------
     def _build_supervisor(self, cfg: dict) -> Supervisor:
@@ -340,10 +341,13 @@ class Daemon:
 
     def _optimize_in_background(self) -> None:
         """The periodic pass (mapping.optimize_every_s) in its own thread; skipped while a
-        pass (periodic or requested) is running."""
+        pass (periodic or requested) is running, and when no scan was mapped since the last
+        periodic one (a robot standing for days needs no pass an hour)."""
         with self.lock:
-            if self.loop.optimizing or self.loop.mapper is None:
+            scans = self.loop.counts["scans"]
+            if self.loop.optimizing or self.loop.mapper is None or scans == self._periodic_at:
                 return
+            self._periodic_at = scans
 
         def run() -> None:
             try:
