@@ -154,13 +154,11 @@ class Mapper2D:
         from dataclasses import replace
 
         NP = replace(self.m.params.neighbours, enabled=True)
-        job = self.m.finishing_job(NP, max_near=OPTIMIZE_MAX_NEAR, sweep=True)
-        job.owner = self.m
-        return job
+        return self.m.finishing_job(NP, max_near=OPTIMIZE_MAX_NEAR, sweep=True)
 
     def apply_optimize(self, job: Any) -> dict:
         """Adopt a computed job; a mapper replaced meanwhile (checkpoint load) ignores it."""
-        if getattr(job, "owner", None) is not self.m:
+        if job.source is not self.m:
             raise RuntimeError("the map was replaced while optimising; nothing applied")
         out = self.m.apply_finish(job)
         if self.m.count and self.m.last_odom is not None:  # not re-anchored since its scan
@@ -313,6 +311,7 @@ class MappingLoop:
         self._first_scan_ns: int | None = None
         self._first_odom_ns: int | None = None
         self._optimize_job: Any = None  # the finishing pass being computed, if any
+        self._optimize_t0 = 0.0
         self.last_optimize: dict | None = None
 
     # -- inputs ---------------------------------------------------------------------------
@@ -490,8 +489,7 @@ class MappingLoop:
         if self.mapper is None or not hasattr(self.mapper, "optimize_job"):
             raise ValueError("no 2D mapper")
         job = self.mapper.optimize_job()
-        job.t0 = time.perf_counter()
-        self._optimize_job = job
+        self._optimize_job, self._optimize_t0 = job, time.perf_counter()
         return job
 
     def optimize_end(self, job: Any) -> dict:
@@ -510,7 +508,7 @@ class MappingLoop:
                "snapshot_nodes": int(job.nodes), "pairs": int(job.pairs),
                "sweep_edges": int(job.sweep_edges),
                "max_shift_m": round(float(got["max_shift_m"]), 4),
-               "ms": round(1000 * (time.perf_counter() - job.t0), 1)}
+               "ms": round(1000 * (time.perf_counter() - self._optimize_t0), 1)}
         self.counts["optimized"] += 1
         self.last_optimize = out
         self._event("optimize", dict(out))

@@ -557,13 +557,16 @@ class Mapper:
         return FinishJob(NP or self.params.neighbours, copy, list(self.scans),
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, max_near, LP if do_sweep else None,
-                         np.array(self.travel, float))
+                         np.array(self.travel, float), source=self)
 
     def apply_finish(self, job: FinishJob) -> dict:
         """Adopt a computed :class:`FinishJob`: its edges replace the previous pass's, its
         poses replace the snapshot's nodes (nodes added since follow the newest snapshot node
         rigidly, up to a re-anchor), and the map is rebuilt from them.  Nodes compacted away
-        meanwhile drop out with their edges.  Returns figures (edges, nodes, max_shift_m)."""
+        meanwhile drop out with their edges.  Returns figures (edges, nodes, max_shift_m);
+        ValueError for another mapper's job (e.g. this one was replaced meanwhile)."""
+        if job.source is not self:
+            raise ValueError("the job is another mapper's snapshot; nothing applied")
         out = {"edges": 0, "nodes": self.count, "max_shift_m": 0.0}
         if job.poses is None or not job.edges:
             return out
@@ -712,6 +715,7 @@ class FinishJob:
     poses: np.ndarray | None = None            # the snapshot's nodes, re-optimised
     pairs: int = 0                             # scan pairs matched, all rounds
     sweep_edges: int = 0
+    source: object = field(default=None, repr=False)  # the mapper it was taken from
 
     @property
     def nodes(self) -> int:
