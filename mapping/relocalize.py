@@ -27,6 +27,14 @@
    per rotation hypothesis) adds its best cells as further translation hypotheses; and when
    no hypothesis fits better than ``fallback_fit`` (the lines named no right rotation: the
    scan's segments are furniture at odd angles), the sweep runs over all rotations.
+   Both sweeps read only the free-space band: grid positions within ``reach`` of a mapped
+   wall, where ``reach`` is a bound from the scan's own ranges (a pose passing ``min_score``
+   has a wall within the k-th shortest range, :func:`_reach`), so empty space around or
+   inside a big map is never read; the band's connected pieces are read as a few windows.
+   Each scan point reads its window of the (phase-split) near-wall mask for all rotations
+   in one fancy index, so the Python work is points x windows and the memory traffic
+   rotations x points x band positions; the best cells per rotation come from the rows with
+   the best maxima (:func:`_top_cells`), not a selection over every count.
 
 Symmetric places (corridors, identical rooms) give several hypotheses with similar scores; all
 are returned, ranked.
@@ -96,6 +104,8 @@ class RelocParams:
     fallback_cells: int = 10
     fallback_grid: float = 0.3
     fallback_points: int = 16
+    fallback_icp: int = 30            # distinct sweep candidates the ICP pulls in (the sweep
+    # ranks them well: 15-120 found the same poses over 3 maps x 3 seeds)
 
 
 @dataclass
@@ -191,17 +201,38 @@ class DistanceField:
             cache[key] = (pad, m)
         return cache[key]
 
-    def phase_masks(self, thr: float, step: int) -> tuple[int, list[np.ndarray]]:
-        """(pad, the padded near-wall mask split into its step x step sampling phases):
-        ``phases[py * step + px][j, i]`` is ``mask[py + j * step, px + i * step]``, so a
-        strided read of the mask becomes a contiguous slice (cached, as int16 to add)."""
+    def phase_stack(self, thr: float, step: int) -> tuple[int, np.ndarray]:
+        """(pad, the padded near-wall mask split into its step x step sampling phases, stacked):
+        ``stack[py * step + px, j, i]`` is ``mask[py + j * step, px + i * step]``, so a read of
+        the mask at a stride of ``step`` pixels from any offset is a window of one phase, and
+        one fancy index over a sliding-window view reads it for many rotations at once
+        (cached per map, uint8: a sum of a few dozen 0/1 reads never overflows)."""
         key = (round(thr, 4), step)
-        cache = self.__dict__.setdefault("_phases", {})
+        cache = self.__dict__.setdefault("_stacks", {})
         if key not in cache:
             pad, m = self.padded_mask(thr)
-            cache[key] = (pad, [np.ascontiguousarray(m[py::step, px::step], np.int16)
-                                for py in range(step) for px in range(step)])
+            ny, nx = self.grid_shape(step)
+            hs, ws = 2 * pad // step + ny + 1, 2 * pad // step + nx + 1
+            st = np.zeros((step * step, hs, ws), np.uint8)
+            for py in range(step):          # step^2 strided copies, once per map
+                for px in range(step):
+                    ph = m[py::step, px::step][:hs, :ws]
+                    st[py * step + px, : ph.shape[0], : ph.shape[1]] = ph
+            cache[key] = (pad, st)
         return cache[key]
+
+    def grid_shape(self, step: int) -> tuple[int, int]:
+        """(rows, columns) of the sweep's position grid at ``step`` pixels."""
+        ny, nx = (np.array(self.dist.shape) + step - 1) // step
+        return int(ny), int(nx)
+
+    def grid_dist(self, step: int) -> np.ndarray:
+        """The distance field at the sweep's grid positions (every ``step``-th pixel), cached:
+        what the sweep's free-space band is cut from."""
+        cache = self.__dict__.setdefault("_grid_dist", {})
+        if step not in cache:
+            cache[step] = np.ascontiguousarray(self.dist[::step, ::step])
+        return cache[step]
 
     def lookup(self, p: np.ndarray) -> np.ndarray:
         """Distances for points (..., 2); points off the grid count as far."""
@@ -360,8 +391,10 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             sums_d = np.bincount(flat, D, votes.size)[top]
             cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
             cand_R.append(th + sums_d / votes[top])
+    # the free-space band both sweeps are restricted to (a bound from the scan's ranges)
+    reach = _reach(seg.points, P, field.res)
     if P.sweep_cells and len(rots):
-        Ts_, Rs_ = _sweep(field, pts, rots, P)
+        Ts_, Rs_ = _sweep(field, pts, rots, P, reach)
         cand_T.append(Ts_)
         cand_R.append(Rs_)
     if not cand_T:
@@ -373,8 +406,9 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         hyps = _verify_points(field, seg.points, T, th, scores, P)
         if P.sweep_cells and P.fallback_fit and (
                 not hyps or max(h.fit for h in hyps) < P.fallback_fit):
-            T2, th2, sc2 = _fallback_sweep(field, pts, P)
-            hyps += _verify_points(field, seg.points, T2, th2, sc2, P)
+            T2, th2, sc2 = _fallback_sweep(field, pts, P, reach)
+            hyps += _verify_points(field, seg.points, T2, th2, sc2,
+                                   replace(P, icp_candidates=P.fallback_icp))
         return _ranked(hyps, P)
     best = np.argsort(-scores)[: max(P.refine * 3, P.refine)]
     hyps: list[Hypothesis] = []
@@ -504,14 +538,15 @@ def _ranked(hyps: list[Hypothesis], P: RelocParams) -> RelocResult:
     return RelocResult(True, out[0].pose, out[0].score, out)
 
 
-def _fallback_sweep(field: DistanceField, pts: np.ndarray, P: RelocParams):
+def _fallback_sweep(field: DistanceField, pts: np.ndarray, P: RelocParams,
+                    reach: float | None = None, stats: dict | None = None):
     """Candidates for a scan whose lines gave no convincing pose (cluttered: its few
     segments are furniture at odd angles, so no line pairing names the rotation): the
     correlative sweep over all rotations at ``fallback_rot_deg`` steps."""
     rots = np.arange(0.0, 2 * np.pi, np.deg2rad(P.fallback_rot_deg))
     Q = replace(P, sweep_cells=P.fallback_cells, sweep_grid=P.fallback_grid,
                 sweep_points=P.fallback_points)
-    T, th = _sweep(field, pts, rots, Q)
+    T, th = _sweep(field, pts, rots, Q, reach, stats)
     return T, th, _score(field, pts, T, th, P.coarse_dist)
 
 
@@ -562,34 +597,119 @@ def _crossings(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
     return hit.mean(-1)
 
 
-def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocParams):
+def _band_windows(field: DistanceField, step: int, reach: float | None,
+                  max_windows: int = 8) -> tuple[np.ndarray, list[tuple[int, int, int, int]]]:
+    """The sweep's positions: (band, windows).  ``band`` (grid shape) marks the grid positions
+    within ``reach`` of a mapped wall -- the only places a scan with enough points on walls
+    can have been taken from (see :func:`_reach`); empty space farther out is never read.
+    ``windows`` are (row, col, rows, cols) boxes around the band's connected pieces, so a
+    wall piece far from the rest adds its own small box, not the empty space in between
+    (more than ``max_windows`` pieces: one box around them all)."""
+    g = field.grid_dist(step)
+    if reach is None or not np.isfinite(reach):
+        band = np.ones(g.shape, bool)
+    else:
+        band = g <= reach
+    if band.all():
+        return band, [(0, 0, g.shape[0], g.shape[1])]
+    if not band.any():
+        return band, []
+    n, _, stats, _ = cv2.connectedComponentsWithStats(band.view(np.uint8), connectivity=8)
+    boxes = [(int(st[1]), int(st[0]), int(st[3]), int(st[2])) for st in stats[1:]]
+    if len(boxes) > max_windows:
+        ys, xs = np.nonzero(band)
+        boxes = [(int(ys.min()), int(xs.min()), int(ys.max() - ys.min() + 1),
+                  int(xs.max() - xs.min() + 1))]
+    return band, boxes
+
+
+def _reach(points: np.ndarray, P: RelocParams, res: float) -> float:
+    """How far from the nearest mapped wall the laser can be for a pose that passes
+    ``min_score``: at least that fraction of the points lies within ``inlier_dist`` of a
+    wall, so the nearest of those inliers -- no farther than the k-th nearest point, k the
+    number of points that may miss -- puts a wall within its range + ``inlier_dist`` of the
+    laser.  Plus two field pixels of rasterisation (the sweep adds its cell's half diagonal).
+    A bound, not a guess: no pose that could be accepted is cut."""
+    r = np.sort(np.hypot(points[:, 0], points[:, 1]))
+    if not len(r) or P.min_score <= 0:
+        return float("inf")
+    k = max(len(r) - int(np.ceil(P.min_score * len(r))), 0)
+    return float(r[k] + P.inlier_dist + 2 * res)
+
+
+def _top_cells(acc: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(counts, rows, cols) of the ``k`` best cells of every rotation's grid ``acc`` (R, h, w).
+    Exact, and cheaper than a selection over all R x h x w counts: the best k cells lie in
+    at most k rows, so the rows with the k highest maxima hold them; only those are
+    searched."""
+    R, h, w = acc.shape
+    if h > k:
+        rmax = acc.max(axis=2)                                           # (R, h)
+        rows = np.argpartition(rmax, h - k, axis=1)[:, h - k:]           # (R, k)
+    else:
+        rows = np.broadcast_to(np.arange(h), (R, h))
+    sub = np.take_along_axis(acc, rows[..., None], 1).reshape(R, -1)     # (R, k' * w)
+    kk = min(k, sub.shape[1])
+    top = np.argpartition(sub, sub.shape[1] - kk, axis=1)[:, sub.shape[1] - kk:]
+    r_i, ix = np.divmod(top, w)
+    return (np.take_along_axis(sub, top, 1).astype(np.int32),
+            np.take_along_axis(rows, r_i, 1), ix)
+
+
+def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocParams,
+           reach: float | None = None, stats: dict | None = None):
     """Translation hypotheses that do not need two scan lines on two map lines: for every
     rotation hypothesis, the scan points are correlated with the map's near-wall mask at every
-    cell of a coarse grid (one shifted slice of the mask per point), and the best cells are
-    returned.  The mask is widened by half a cell's diagonal, so a cell's count bounds the
-    score of any pose inside it.  Cluttered scans with one or two short lines need this."""
-    step = max(1, int(round(P.sweep_grid / field.res)))
-    thr = P.coarse_dist + 0.71 * step * field.res
-    pad, phases = field.phase_masks(thr, step)
-    ny, nx = (np.array(field.dist.shape) + step - 1) // step
+    position of a coarse grid in the free-space band (within ``reach`` of a wall,
+    :func:`_band_windows`), and the best ``sweep_cells`` positions per rotation are returned.
+    The mask is widened by half a cell's diagonal, so a cell's count bounds the score of any
+    pose inside it.  Cluttered scans with one or two short lines need this.
+
+    Cost: one fancy index per scan point and band window reads that point's window of the
+    mask for all rotations at once (a point's offset under each rotation picks the phase and
+    start of a strided read, :meth:`DistanceField.phase_stack`), so the Python work is
+    points x windows, and the memory traffic rotations x points x band positions.  ``stats``
+    (if given) receives the counts: positions, band, rotations, points."""
+    res = field.res
+    step = max(1, int(round(P.sweep_grid / res)))
+    thr = P.coarse_dist + 0.71 * step * res
+    pad, stack = field.phase_stack(thr, step)
     if len(pts) > P.sweep_points:
         pts = pts[np.linspace(0, len(pts) - 1, P.sweep_points).astype(int)]
-    out_T, out_R = [], []
-    for th in rots:  # a dozen rotations, each a sum of one slice per point
-        c, s = np.cos(th), np.sin(th)
-        off = np.round((pts @ np.array([[c, s], [-s, c]])) / field.res).astype(int) + pad
-        keep = np.all((off >= 0) & (off <= 2 * pad), axis=-1)
-        acc = np.zeros((ny, nx), np.int16)
-        for ox, oy in off[keep]:
-            # mask[oy::step, ox::step] as a contiguous slice of the matching phase
-            ph = phases[(oy % step) * step + ox % step]
-            acc += ph[oy // step: oy // step + ny, ox // step: ox // step + nx]
-        k = min(P.sweep_cells, acc.size)
-        best = np.argpartition(-acc.ravel(), k - 1)[:k]
-        iy, ix = np.divmod(best, nx)
-        out_T.append(field.lo + np.column_stack([ix, iy]) * step * field.res)
-        out_R.append(np.full(k, th))
-    return np.concatenate(out_T), np.concatenate(out_R)
+    # points beyond the padding cannot be read: dropped (by range, so every rotation
+    # correlates the same points)
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < (pad - 1) * res]
+    # a grid position stands for poses up to half a cell's diagonal away
+    band, windows = _band_windows(field, step,
+                                  None if reach is None else reach + 0.71 * step * res)
+    if stats is not None:
+        stats.update(positions=int(sum(h * w for _, _, h, w in windows)),
+                     band=int(band.sum()), rotations=int(len(rots)), points=int(len(pts)))
+    if not len(pts) or not len(rots) or not windows:
+        return np.zeros((0, 2)), np.zeros(0)
+    c, s = np.cos(rots)[:, None], np.sin(rots)[:, None]
+    ox = np.round((c * pts[:, 0] - s * pts[:, 1]) / res).astype(np.int64) + pad   # (R, N)
+    oy = np.round((s * pts[:, 0] + c * pts[:, 1]) / res).astype(np.int64) + pad
+    phase = (oy % step) * step + ox % step
+    qy, qx = oy // step, ox // step
+    k = P.sweep_cells
+    cand_s, cand_y, cand_x = [], [], []
+    for y0, x0, h, w in windows:     # usually one box; a few for scattered maps
+        view = np.lib.stride_tricks.sliding_window_view(stack, (h, w), axis=(1, 2))
+        acc = np.zeros((len(rots), h, w), np.uint8 if len(pts) < 256 else np.uint16)
+        for j in range(len(pts)):    # a loop over the few sampled points, not over cells
+            acc += view[phase[:, j], qy[:, j] + y0, qx[:, j] + x0]
+        acc *= band[y0: y0 + h, x0: x0 + w]        # positions off the band never win
+        sc, iy, ix = _top_cells(acc, k)
+        cand_s.append(sc)
+        cand_y.append(iy + y0)
+        cand_x.append(ix + x0)
+    sc, gy, gx = (np.concatenate(v, 1) for v in (cand_s, cand_y, cand_x))
+    if sc.shape[1] > k:              # the best k per rotation over all windows
+        top = np.argpartition(-sc, k - 1, axis=1)[:, :k]
+        gy, gx = np.take_along_axis(gy, top, 1), np.take_along_axis(gx, top, 1)
+    T = field.lo + np.stack([gx.ravel(), gy.ravel()], -1) * step * res
+    return T, np.repeat(np.asarray(rots, float), gy.shape[1])
 
 
 def _polish(field: DistanceField, pts: np.ndarray, pose: np.ndarray, inlier: float,
