@@ -15,11 +15,16 @@ from cgamap.mapping.relocalize import (
     Hypothesis,
     RelocParams,
     _crossings,
+    _fallback_sweep,
     _icp,
     _ranked,
+    _reach,
+    _top_cells,
     relocalize,
 )
 from cgamap.mapping.segments import Segments, segments_from_scan
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from synth2d import ROOM, scan, scanned_map, world
 
 
@@ -147,19 +152,23 @@ def test_single_line_scan_is_placed_by_its_points():
     assert not relocalize(m, one, None, replace(RelocParams(), sweep_cells=0)).found
 
 
-def test_cluttered_scan_found_by_the_all_rotation_sweep():
-    # the scan's only segment is clutter at an odd angle (a cabinet, not in the map), so
-    # the line pairing proposes wrong rotations; the room's walls are only points
-    w = world(ROOM)
-    m = _segment_map(ROOM)
-    p = np.array([-0.5, 0.8, 1.1])
-    full = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi, sigma=0.005, seed=1))
+def _cluttered_scan(p) -> Segments:
+    """A scan of ROOM from ``p`` whose only segment is clutter at an odd angle (a cabinet,
+    not in the map), so the line pairing proposes wrong rotations; the room's walls are
+    only points."""
+    full = segments_from_scan(scan(world(ROOM), p, n=360, fov=2 * np.pi, sigma=0.005, seed=1))
     t = np.linspace(0, 1, 12)[:, None]
     a, b = np.array([0.6, 0.2]), np.array([1.0, 0.75])       # laser frame, ~0.7 m
     clutter = a + t * (b - a)
     pts = np.concatenate([full.points[::2], clutter])
-    seg = Segments(a[None], b[None], np.array([12]), np.array([0.0]), (0.5 * (a + b))[None],
-                   np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), pts)
+    return Segments(a[None], b[None], np.array([12]), np.array([0.0]), (0.5 * (a + b))[None],
+                    np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), pts)
+
+
+def test_cluttered_scan_found_by_the_all_rotation_sweep():
+    m = _segment_map(ROOM)
+    p = np.array([-0.5, 0.8, 1.1])
+    seg = _cluttered_scan(p)
     P = RelocParams()
     r = relocalize(m, seg, None, P)
     assert r.found
@@ -168,3 +177,61 @@ def test_cluttered_scan_found_by_the_all_rotation_sweep():
     # the fallback is what found it: without it the line pairing's rotations miss
     r_off = relocalize(m, seg, None, replace(P, fallback_fit=0.0))
     assert not r_off.found or _pose_err(r_off.pose, p)[1] > 2.0
+
+
+def test_fallback_reads_the_free_space_band_not_the_map_area():
+    # the same room in three maps: alone; with a 1 m wall piece 40 m away (the map's grid
+    # 15x larger, nearly all of it empty); alone with a field border of 12 m instead of 2 m
+    # (9x the grid).  The all-rotation sweep reads only positions near walls, so its reads
+    # do not follow the map's area -- and it still finds the cluttered scan's pose
+    p = np.array([-0.5, 0.8, 1.1])
+    seg = _cluttered_scan(p)
+    P = RelocParams()
+    room = _segment_map(ROOM)
+    far = _segment_map(ROOM + [(36.0, 30.0, 37.0, 30.0)])
+    fields = {"room": DistanceField(room, 0.05), "far": DistanceField(far, 0.05),
+              "border": DistanceField(room, 0.05, border=12.0)}
+    maps = {"room": room, "far": far, "border": room}
+    reach = _reach(seg.points, P, 0.05)
+    step = int(round(P.fallback_grid / 0.05))
+    grid, pos = {}, {}
+    for k, f in fields.items():
+        counts: dict = {}
+        T, th, _ = _fallback_sweep(f, seg.points, P, reach, counts)
+        assert counts["rotations"] == round(360 / P.fallback_rot_deg)
+        assert len(T) == counts["rotations"] * P.fallback_cells
+        grid[k], pos[k] = int(np.prod(f.grid_shape(step))), counts["positions"]
+        r = relocalize(maps[k], seg, f, P)
+        assert r.found and _pose_err(r.pose, p)[0] < 0.05 and _pose_err(r.pose, p)[1] < 0.5
+    assert grid["far"] > 12 * grid["room"] and grid["border"] > 4 * grid["room"]
+    # reads are bounded by the band: the walls' boxes grown by the reach, whatever the grid
+    g = P.fallback_grid
+    r_cells = (reach + 0.71 * g) / g
+    room_box = (7.0 / g + 2 * r_cells + 2) * (5.0 / g + 2 * r_cells + 2)   # ROOM is 7 x 5 m
+    piece_box = (1.0 / g + 2 * r_cells + 2) * (2 * r_cells + 2)           # the 1 m piece
+    assert pos["border"] <= room_box < grid["border"] / 2
+    assert pos["room"] < pos["far"] <= room_box + piece_box < grid["far"] / 5
+
+def test_reach_bounds_the_nearest_wall_of_an_acceptable_pose():
+    # 10 points at ranges 1..10: with min_score 0.5 at least 5 are inliers, the nearest of
+    # them at most at range 6 (the 6th shortest), so a wall is within 6 + inlier_dist
+    P = replace(RelocParams(), min_score=0.5, inlier_dist=0.1)
+    ang = np.linspace(0, 2, 10)
+    pts = np.column_stack([np.cos(ang), np.sin(ang)]) * np.arange(1, 11)[:, None]
+    assert _reach(pts, P, 0.05) == pytest.approx(6.0 + 0.1 + 0.1)
+    assert _reach(pts, replace(P, min_score=1.0), 0.05) == pytest.approx(1.2)
+    assert _reach(pts, replace(P, min_score=0.0), 0.05) == np.inf
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 9), st.integers(1, 12), st.integers(1, 15),
+       st.integers(0, 2**31 - 1))
+def test_top_cells_are_the_best_counts_of_each_rotation(nrot, h, w, k, seed):
+    acc = np.random.default_rng(seed).integers(0, 6, (nrot, h, w)).astype(np.uint8)
+    sc, iy, ix = _top_cells(acc, k)
+    kk = min(k, h * w)
+    assert sc.shape == iy.shape == ix.shape == (nrot, kk)
+    for r in range(nrot):
+        assert np.array_equal(acc[r, iy[r], ix[r]], sc[r])           # counts where they say
+        assert len({(a, b) for a, b in zip(iy[r], ix[r], strict=True)}) == kk       # distinct cells
+        assert sorted(sc[r]) == sorted(np.sort(acc[r].ravel())[-kk:])  # the k best
