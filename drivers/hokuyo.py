@@ -11,7 +11,9 @@ Stop: ``QT``.  Loss of the port or a stall is handled by :class:`LaserDriver` (r
 
 Ranges: a value below DMIN (the sensor's error codes) or above DMAX is no return: NaN.
 ``device_stamp`` is the unwrapped SCIP millisecond timestamp; :meth:`HokuyoDriver.sync_time`
-(``TM0/TM1/TM2``) estimates the offset from it to ``time.monotonic_ns()``.
+(``TM0/TM1/TM2``) estimates the offset from it to ``time.monotonic_ns()``.  A scan's
+``stamp_ns`` is the arrival time it would have had on an idle host: its SCIP timestamp through
+a :class:`~.device_clock.DeviceClock`, so a scan read late on a busy host keeps its instant.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from collections import deque
 
 import numpy as np
 
+from .device_clock import DeviceClock
 from .laser import DeviceError, LaserDriver
 from .messages import LaserScan
 from .scip import (
@@ -110,6 +113,7 @@ class HokuyoDriver(LaserDriver):
         self.parser.errors = self.errors          # one set of counters for the driver
         self.info: SensorInfo | None = None
         self.time_offset_ns: int | None = None    # host monotonic ns minus device ms * 1e6
+        self.clock = DeviceClock()                 # scan stamps from the SCIP timestamps
         self._pending: deque[ScipScan] = deque()
         self._scan_cmd = ""
         self._streaming = False
@@ -149,7 +153,7 @@ class HokuyoDriver(LaserDriver):
                 if scan.echo != self._scan_cmd:   # an echo digit hit by a byte error
                     self.errors.framing += 1
                     continue
-                return scan_to_message(scan, self._info())
+                return scan_to_message(scan, self._info(), self._taken_ns(scan))
             left = deadline - time.monotonic()
             if left <= 0:
                 return None
@@ -178,8 +182,14 @@ class HokuyoDriver(LaserDriver):
             for i, scan in enumerate(self._pending):
                 if scan.echo == cmd:
                     del self._pending[i]
-                    return scan_to_message(scan, self._info())
+                    return scan_to_message(scan, self._info(), self._taken_ns(scan))
         return None
+
+    def _taken_ns(self, scan: ScipScan) -> int | None:
+        """``scan``'s host stamp by its device clock (None: the arrival stamp as it is)."""
+        if scan.stamp_ns is None:
+            return None
+        return self.clock.stamp(scan.device_ms, scan.stamp_ns)
 
     def stop(self) -> None:
         """Stop streaming and switch the laser off (``QT``)."""
