@@ -110,6 +110,7 @@ class Mapper2D:
             initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
         self.m.keep_scans = True
+        self.node_stamps: collections.deque = collections.deque()  # scan stamp per graph node
         self._pose = np.zeros(3)
         self._field = None       # the map's distance field for relocalisation, and the
         self._field_key = None   # (map, scans, segments) it was built for
@@ -119,7 +120,13 @@ class Mapper2D:
         return self._pose.copy()
 
     def step(self, scan: LaserScan, odom) -> tuple[np.ndarray, float | None, int]:
-        res = self.m.step(scan.ranges, scan.angle_min, scan.angle_increment, odom)
+        added = self.m.count + self.m.dropped
+        try:
+            res = self.m.step(scan.ranges, scan.angle_min, scan.angle_increment, odom)
+        finally:  # a step that failed after adding its node still numbers it
+            self.node_stamps.extend([scan.stamp_ns] * (self.m.count + self.m.dropped - added))
+            while len(self.node_stamps) > self.m.count:  # compacted nodes
+                self.node_stamps.popleft()
         q = None if res.correction is None else float(res.correction.matched_fraction)
         self._pose = self.m.base_pose(res.pose)
         return self._pose.copy(), q, int(res.segments)
@@ -146,6 +153,7 @@ class Mapper2D:
         self._pose = np.asarray(st["pose"], dtype=float)
         self.m = self._make(tuple(self._pose))
         self.m.keep_scans = True
+        self.node_stamps.clear()
         self.m.map = LineMap(**{k: v for k, v in st["map"].items() if k in names})
 
     def optimize_job(self) -> Any:
@@ -164,6 +172,13 @@ class Mapper2D:
         if self.m.count and self.m.last_odom is not None:  # not re-anchored since its scan
             self._pose = self.m.base_pose(self.m.graph.poses[-1])
         return out
+
+    def node_poses(self) -> dict[int, np.ndarray]:
+        """Base pose of each kept graph node by its scan's stamp."""
+        if not self.m.count:
+            return {}
+        base = self.m.base_pose(self.m.poses)
+        return dict(zip(self.node_stamps, base, strict=True))
 
     def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float] | None:
         """Global pose of ``scan`` in the map by Hough-domain relocalisation, or None."""
@@ -504,6 +519,8 @@ class MappingLoop:
         if got["edges"]:
             self.pose = self.mapper.pose
             self.map_version += 1
+            if hasattr(self.mapper, "node_poses"):
+                self._retrace(self.mapper.node_poses())
         out = {"edges": int(got["edges"]), "nodes": int(got["nodes"]),
                "snapshot_nodes": int(job.nodes), "pairs": int(job.pairs),
                "sweep_edges": int(job.sweep_edges),
@@ -513,6 +530,24 @@ class MappingLoop:
         self.last_optimize = out
         self._event("optimize", dict(out))
         return out
+
+    def _retrace(self, at: dict[int, np.ndarray]) -> None:
+        """The kept nodes' new poses into the trajectory and the scan pose history (the
+        newest rows, by scan stamp): ``trajectory`` and 3D frames see the optimised poses."""
+        if not at:
+            return
+        oldest = min(at)
+
+        def redo(dq: collections.deque, make) -> None:
+            tail = []
+            while dq and dq[-1][0] >= oldest:
+                tail.append(dq.pop())
+            for row in reversed(tail):
+                p = at.get(row[0])
+                dq.append(row if p is None else make(row, p))
+
+        redo(self.trajectory, lambda r, p: (r[0], r[1], *map(float, p), r[5]))
+        redo(self.scan_poses.items, lambda r, p: (r[0], np.asarray(p, float)))
 
     def optimize_abort(self, job: Any) -> None:
         """Forget a job that failed or was abandoned (call under the loop's lock)."""

@@ -82,6 +82,11 @@ def test_optimize_corrects_the_drift_and_moves_the_map(name, laps, seed, gain):
     assert got["nodes"] == loop.mapper.m.count and got["max_shift_m"] > 0
     assert ate1 <= ate0 * gain + 0.003, (ate0, ate1)
     assert map1 <= map0 + 0.01, (map0, map1)
+    # the trajectory's rows (by scan stamp) are the kept nodes' new poses
+    traj = np.array(loop.trajectory)
+    assert len(traj) == loop.mapper.m.count
+    assert np.allclose(traj[:, 2:5], loop.mapper.m.poses)
+    assert np.allclose(loop.scan_poses.latest[1], loop.mapper.m.poses[-1])
     # the map follows the new poses, and the checkpoint holds that map
     assert loop.map_version > version and loop.status()["optimize"]["last"] == got
     st = loop.state()["map2d"]["map"]
@@ -173,6 +178,7 @@ def test_scans_mapped_and_nodes_compacted_while_a_pass_computes():
         run.feed(loop, 40)   # mapped meanwhile; past max_nodes the oldest nodes go
         m = loop.mapper.m
         assert m.dropped > 0
+        before = np.array(loop.trajectory)[:, 2:5]
         job.run()
         if apply:
             got = loop.optimize_end(job)
@@ -180,6 +186,11 @@ def test_scans_mapped_and_nodes_compacted_while_a_pass_computes():
             assert got["edges"] > 0 and FIELDS <= set(got)
             g = m.graph
             assert max(max(g.ei), max(g.ej)) < m.count
+            # the kept nodes' rows of the trajectory moved with them, the older rows stayed
+            traj = np.array(loop.trajectory)
+            assert len(traj) == 140 > m.count
+            assert np.allclose(traj[-m.count:, 2:5], m.poses)
+            assert np.allclose(traj[:-m.count, 2:5], before[:-m.count])
         else:
             loop.optimize_abort(job)
         assert not loop.optimizing
