@@ -125,8 +125,7 @@ class Daemon:
         # that never appears must not hold the service in "activating" until systemd kills it
         ready_at = time.monotonic() + self.cfg["supervisor"]["ready_timeout"]
         ready = False
-        every = self.cfg["mapping"].get("optimize_every_s", 0.0)
-        next_optimize = time.monotonic() + every
+        last_optimize = time.monotonic()
         while not self.stop_event.is_set():
             if not ready and (self.supervisor.all_running() or time.monotonic() >= ready_at):
                 ready = True
@@ -155,8 +154,9 @@ class Daemon:
             if now >= next_status:
                 next_status = now + 2.0
                 notify.status(self.status_line())
-            if every and now >= next_optimize:
-                next_optimize = now + every
+            every = self.cfg["mapping"].get("optimize_every_s", 0.0)  # SIGHUP may change it
+            if every and now - last_optimize >= every:
+                last_optimize = now
                 self._optimize_in_background()
             if self.replay and self.supervisor.all_finished():
                 with self.lock:
@@ -221,9 +221,9 @@ class Daemon:
 
     # -- SIGHUP ---------------------------------------------------------------------------
     def reload(self) -> None:
-        """Re-read the config: log level, checkpoint interval, loss thresholds and backoff
-        apply at once; a device whose URL or parameters changed is restarted; added or
-        removed devices and role changes need a restart (logged)."""
+        """Re-read the config: log level, checkpoint interval, loss thresholds, the periodic
+        optimisation and backoff apply at once; a device whose URL or parameters changed is
+        restarted; added or removed devices and role changes need a restart (logged)."""
         notify.reloading()
         if not self.config_path:
             return
@@ -239,6 +239,7 @@ class Daemon:
             self.cfg["log_level"] = new["log_level"]
             self.loop.lost_quality = new["mapping"]["lost_quality"]
             self.loop.lost_after = new["mapping"]["lost_after"]
+            self.cfg["mapping"]["optimize_every_s"] = new["mapping"]["optimize_every_s"]
             for w in self.supervisor.workers.values():
                 w.backoff_initial = new["supervisor"]["backoff_initial"]
                 w.backoff_max = new["supervisor"]["backoff_max"]

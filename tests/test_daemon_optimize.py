@@ -332,3 +332,18 @@ def test_the_periodic_pass_runs_in_the_daemon(tmp_path):
         shutil.rmtree(run_dir, ignore_errors=True)
     assert done.is_set() and d.loop.counts["optimized"] == 1
     assert d.loop.last_optimize["edges"] > 0
+
+
+def test_sighup_changes_the_optimize_period(tmp_path):
+    import yaml
+    from cgamap.daemon.service import Daemon
+
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump({"mapping": {"map3d": False}}))
+    d = Daemon(config_mod.load(path), config_path=str(path), state_dir=str(tmp_path / "s"),
+               socket_path=str(tmp_path / "d.sock"))
+    assert d.cfg["mapping"]["optimize_every_s"] == 0.0
+    path.write_text(yaml.safe_dump({"mapping": {"map3d": False, "optimize_every_s": 3600}}))
+    d.reload()
+    assert d.cfg["mapping"]["optimize_every_s"] == 3600.0
+
