@@ -84,11 +84,6 @@ class WheelOdometry:
 
 # -- the 2D mapper adapter ------------------------------------------------------------------
 
-# the on-demand finishing pass pairs each scan with at most this many spatial neighbours (plus
-# its predecessors): months of passes through one room must not make the pairs quadratic
-OPTIMIZE_MAX_NEAR = 30
-
-
 class Mapper2D:
     """``mapping.slam2d.Mapper`` behind a small interface: step, segments, state, set_pose.
 
@@ -158,11 +153,12 @@ class Mapper2D:
 
     def optimize_job(self) -> Any:
         """The finishing pass on a snapshot of the kept nodes (``Mapper.finishing_job``),
-        with the pass's parameters enabled and each node's spatial pairs bounded."""
+        with the pass's parameters enabled (``NeighbourParams.max_pairs`` bounds each node's
+        spatial pairs: months of passes through one room must not make them quadratic)."""
         from dataclasses import replace
 
         NP = replace(self.m.params.neighbours, enabled=True)
-        return self.m.finishing_job(NP, max_near=OPTIMIZE_MAX_NEAR, sweep=True)
+        return self.m.finishing_job(NP, sweep=True)
 
     def apply_optimize(self, job: Any) -> dict:
         """Adopt a computed job; a mapper replaced meanwhile (checkpoint load) ignores it."""

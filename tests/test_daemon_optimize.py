@@ -10,6 +10,7 @@ import os
 import shutil
 import tempfile
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -149,17 +150,16 @@ def test_scans_are_kept_for_the_kept_nodes_only():
 def test_pairs_stay_linear_when_the_robot_keeps_to_one_room():
     """Months in one room: every node near every other; the daemon's cap keeps the pairs
     (and the pass's time) linear in the nodes."""
-    from cgamap.daemon.loop import OPTIMIZE_MAX_NEAR
     from cgamap.mapping.slam2d import NeighbourParams, neighbour_pairs
 
     rng = np.random.default_rng(0)
     X = np.column_stack([rng.uniform(0, 1.5, 600), rng.uniform(0, 1.5, 600), np.zeros(600)])
     scans = [(np.zeros((3, 2)), np.ones((3, 2)))] * 600
     NP = NeighbourParams()
-    every = neighbour_pairs(X, scans, NP)
-    capped = neighbour_pairs(X, scans, NP, max_near=OPTIMIZE_MAX_NEAR)
+    every = neighbour_pairs(X, scans, replace(NP, max_pairs=0))
+    capped = neighbour_pairs(X, scans, NP)
     assert len(every) == 600 * 599 // 2
-    assert len(capped) <= 600 * (OPTIMIZE_MAX_NEAR + NP.previous)
+    assert len(capped) <= 600 * (NP.max_pairs + NP.previous)
     assert (capped[:, 0] < capped[:, 1]).all() and len(np.unique(capped, axis=0)) == len(capped)
 
 

@@ -56,6 +56,28 @@ def test_neighbour_pairs_are_spatial_and_sequential():
     assert (0, 3) not in pairs and (3, 6) not in pairs
 
 
+def test_neighbour_pairs_are_capped_and_spread_over_time():
+    """Many passes over one spot: each scan keeps ``max_pairs`` earlier partners, the oldest
+    and the latest visit among them and the rest evenly in between; below the cap, all."""
+    from cgamap.mapping.slam2d import neighbour_pairs
+
+    n, K = 200, 8
+    rng = np.random.default_rng(1)
+    X = np.column_stack([rng.uniform(0, 0.5, n), rng.uniform(0, 0.5, n), np.zeros(n)])
+    scans = [(np.zeros((3, 2)), np.ones((3, 2)))] * n
+    pairs = neighbour_pairs(X, scans, NeighbourParams(radius=1.0, previous=1, max_pairs=K))
+    for i in (5, 8, 9, 50, 199):
+        partners = np.sort(pairs[pairs[:, 1] == i, 0])
+        if i <= K:
+            assert partners.tolist() == list(range(i))
+            continue
+        assert len(partners) == K and partners[0] == 0 and partners[-1] == i - 1
+        gaps = np.diff(partners)
+        assert gaps.max() - gaps.min() <= 1  # evenly spread
+    uncapped = neighbour_pairs(X, scans, NeighbourParams(radius=1.0, previous=1, max_pairs=0))
+    assert len(uncapped) == n * (n - 1) // 2
+
+
 def test_neighbour_pass_improves_a_noisy_run():
     """A lap of the simulated loop twice, high odometry noise: the finishing pass must not
     make the trajectory worse, and it adds one edge per neighbour pair it can match."""
