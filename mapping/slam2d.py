@@ -665,11 +665,15 @@ def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
     pairs = neighbour_pairs(X, scans, NP) if pairs is None else pairs
     f_t, f_r = NP.floor
     floor = np.diag([f_t ** 2, f_t ** 2, f_r ** 2])
+    # batches of like-sized scans: each batch is padded to its largest pair, so a pair of
+    # small scans next to a cluttered one would otherwise cost as much as the clutter
+    counts = np.array([len(a) for a, _ in scans])
+    order = np.lexsort((counts[pairs[:, 0]], counts[pairs[:, 1]])) if len(pairs) else []
     new_edges = []
     for c0 in range(0, len(pairs), NP.chunk):
         if stop is not None and stop():
             return []
-        j, i = pairs[c0:c0 + NP.chunk].T
+        j, i = pairs[order[c0:c0 + NP.chunk]].T
         src_a, src_b = _pad([scans[k] for k in i], 0.0)
         dst_a, dst_b = _pad([scans[k] for k in j], 1e6)  # padding never matches
         res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), relative(X[j], X[i]),
@@ -683,6 +687,7 @@ def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
         ok = (best >= NP.max_std ** -2) & (res.matched_fraction >= NP.min_matched)
         for k in np.nonzero(ok)[0]:
             new_edges.append((int(j[k]), int(i[k]), res.pose[k], info[k]))
+    new_edges.sort(key=lambda e: (e[1], e[0]))  # the graph's edge order: the pairs' order
     return new_edges
 
 
