@@ -10,15 +10,30 @@ import stat
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from cgamap.daemon.demo import Driver, map_error, truth_error
 from cgamap.daemon.export import read_ply_counts
 from cgamap.daemon.recording import read_messages
 from cgamap.drivers.messages import LaserScan, WheelTicks
 from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.evaluation import apply_pose
 from daemon_stack import DaemonProc, short_dir, stack_config, start_twin, wait_until
 
 GEOM = {"wheel_radius": 0.05, "track_width": 0.30}
+
+
+def same_view(world, alignment, pose_a, pose_b) -> float:
+    """Share of a 270 degree laser fan's beams (0.25 degree steps) that see the same range
+    (within 0.15 m + 2 %) from two map-frame poses, ``alignment`` moving them into the world.
+    The 'loop' world's corridors and corners look alike from several places (half a turn
+    round its block, or one corner seen from its other corridor), so a relocalisation may
+    rightly land at any of them: it is judged by what the robot would see there."""
+    to_world = np.asarray(alignment, dtype=float)
+    fan = np.deg2rad(np.arange(-135.0, 135.01, 0.25))
+    ra, rb = (world.raycast(*apply_pose(to_world, np.asarray(p, dtype=float)), fan, 30.0)
+              for p in (pose_a, pose_b))
+    return float(np.mean(np.abs(ra - rb) < 0.15 + 0.02 * ra))
 
 
 def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
@@ -72,6 +87,9 @@ def test_end_to_end(stack):
     assert states["laser"] == "running" and states["base"] == "running"
     assert states["head"] == "disabled"
     assert wait_until(lambda: d.ask("status")["map"]["planes"] >= 1, 60), d.log_text()
+    # the walls mapped by now depend on where the twin's robot was when mapping began (later
+    # on a busy machine: the walls behind it out of sight): wait for the ones the exports need
+    assert wait_until(lambda: d.ask("status")["map"]["segments"] >= 5, 60), d.log_text()
 
     # the CLI against the socket: status, exports, a short recording
     sock = str(d.socket)
@@ -99,21 +117,26 @@ def test_end_to_end(stack):
     walls = map_error(d.ask("map")["segments"], get_world("loop"), err["alignment"])
     print("map vs true walls:", walls)
     assert walls["wall_dist_p95_m"] < 0.15  # no ghost walls
-    driver.stop_event.set()
-    driver.join(5)
+    # relocalise while the base still drives: stopped, the odometry would stand while the
+    # twin's robot moves on, and the tracked pose would fall behind the scan relocalised
     before = d.ask("status")["pose"]
     reloc = d.ask("relocalize")
     print("relocalize on demand:", reloc, "tracked:", before)
     assert reloc["class"] == "relocalize"
-    if reloc["ok"]:  # found: it must agree with tracking (the twin's robot keeps moving)
-        assert abs(reloc["pose"][0] - before[0]) + abs(reloc["pose"][1] - before[1]) < 1.0
+    if reloc["ok"]:  # found: where tracking has the robot, or where it would see the same
+        near = abs(reloc["pose"][0] - before[0]) + abs(reloc["pose"][1] - before[1]) < 1.0
+        assert near or same_view(get_world("loop"), err["alignment"], before,
+                                 reloc["pose"]) > 0.9, (reloc, before)
     # the CLI's socket mode: `cgamap relocalize` with neither --map nor --log asks the daemon
     res = cli("relocalize", "--socket", str(d.socket), "--json")
     if res.returncode == 0:
         assert json.loads(res.stdout)["class"] == "relocalize"
     else:  # "not found" is a daemon answer, reported as one line with exit code 1
         assert res.returncode == 1 and res.stderr.startswith("cgamap: relocalize:"), res.stderr
+    driver.stop_event.set()
+    driver.join(5)
     final_map = d.ask("map")
+    final_scans = d.ask("status")["counts"]["scans"]
 
     rc, took = d.terminate()
     print(f"SIGTERM to exit: {took:.2f} s")
@@ -123,7 +146,10 @@ def test_end_to_end(stack):
     assert msgs.index("READY=1") < msgs.index("STOPPING=1")
     ck = d.checkpoint()
     assert ck is not None and ck["reason"] == "shutdown"
-    assert len(ck["loop"]["map2d"]["map"]["a"]) >= len(final_map["segments"]) > 0
+    # written after the last scan mapped (the map lives on until then: fusing and ageing may
+    # have taken segments since final_map, so compare the scans, not the segment counts)
+    assert ck["loop"]["counts"]["scans"] >= final_scans
+    assert len(ck["loop"]["map2d"]["map"]["a"]) > 0 and len(final_map["segments"]) > 0
 
     # a new daemon on the same state directory starts from the checkpoint
     d2 = daemon()
@@ -215,3 +241,21 @@ def test_map_error_measures_distance_to_true_walls():
     shifted = map_error(world.segments + [0.0, 0.5, 0.0, 0.5], world, (0.0, 0.0, 0.0))
     assert shifted["wall_dist_p95_m"] > 0.3
     assert map_error(world.segments, world, (0.0, -0.5, 0.0))["wall_dist_p95_m"] > 0.3
+
+
+def test_same_view_accepts_look_alike_places_only():
+    """Two relocalisations on demand seen under load: the robot half a turn round the block,
+    and one corner seen from its other corridor.  Both see what the tracked pose sees; a pose
+    0.3 m across the corridor or 1 m along it does not."""
+    world = get_world("loop")
+    cases = [((4.4691, 0.6482, 0.1109), (5.9747, 9.8232, 3.1367), (2.2319, 0.0281, -0.0094)),
+             ((3.1035, 0.5306, 0.0378), (12.5148, 7.6332, 1.4009), (9.5184, -0.2077, -0.1704))]
+    for alignment, tracked, found in cases:
+        assert same_view(world, alignment, tracked, found) > 0.95
+        assert same_view(world, alignment, tracked, tracked) == 1.0
+    alignment, tracked, _ = cases[0]
+    along = np.add(tracked, (1.0, 0.0, 0.0))
+    assert same_view(world, alignment, tracked, along) < 0.8
+    alignment, tracked, _ = cases[1]
+    across = np.add(tracked, (0.3, 0.0, 0.0))
+    assert same_view(world, alignment, tracked, across) < 0.5
