@@ -3,6 +3,10 @@
 Timestamps: ``stamp_ns`` is ``time.monotonic_ns()`` when the driver had the last byte of the
 message (for log replay: the log's own time in ns); ``device_stamp`` is the device's own
 counter or clock where the protocol has one (SCIP timestamp, SICK scan counter), else None.
+Where the device has a clock (Hokuyo SCIP), ``stamp_ns`` is the arrival time the message would
+have had on an idle host, mapped from ``device_stamp`` by :class:`.device_clock.DeviceClock`:
+a scan read late by a busy host keeps the instant it was taken (the odometry at that instant
+is what places it).
 """
 
 from __future__ import annotations
