@@ -6,7 +6,8 @@ counter or clock where the protocol has one (SCIP timestamp, SICK scan counter),
 Where the device has a clock (Hokuyo SCIP), ``stamp_ns`` is the arrival time the message would
 have had on an idle host, mapped from ``device_stamp`` by :class:`.device_clock.DeviceClock`:
 a scan read late by a busy host keeps the instant it was taken (the odometry at that instant
-is what places it).
+is what places it).  Where the device samples on request (a Modbus base's encoder counters),
+``stamp_ns`` is the midpoint of the request and its reply.
 """
 
 from __future__ import annotations
@@ -111,6 +112,16 @@ class WheelTicks:
     status: int | None = None
     estop: bool = False
     errors: dict[str, int] = field(default_factory=dict)
+    # The controller sampled its counters within +- this of stamp_ns (half the request/reply
+    # round trip of the tick registers; stamp_ns is that round trip's midpoint); 0: unknown.
+    stamp_uncertainty_ns: int = 0
+
+    def to_json(self) -> dict:
+        return {"seq": self.seq, "stamp_ns": self.stamp_ns,
+                "stamp_uncertainty_ns": self.stamp_uncertainty_ns, "left": self.left,
+                "right": self.right, "left_speed": self.left_speed,
+                "right_speed": self.right_speed, "status": self.status, "estop": self.estop,
+                "errors": self.errors}
 
 
 @dataclass

@@ -34,6 +34,14 @@ one more timeout and drains the input, so a late reply is never taken for the ne
 Exception responses count as ``device``, a lost connection as ``disconnects`` (reopened after
 ``reconnect_s``; reads in between count as ``dropped``).  Writing wheel-speed set-points needs
 ``allow_setpoints: true`` (off by default).
+
+Stamps: the controller samples its counters when the request arrives, so a read's ``stamp_ns``
+is the midpoint between sending the request and receiving the reply of the block holding
+``left_ticks`` (not the instant all blocks were back), and ``stamp_uncertainty_ns`` is half that
+round trip: the sampling instant lies within +- the uncertainty of the stamp.  The instants come
+from pymodbus's ``trace_packet`` hook (bytes handed to / taken from the transport), else from
+around the client call.  On a serial line the reply frame is longer on the wire than the
+request; the stamp moves back by half the difference (:func:`rtu_wire_skew_ns`).
 """
 
 from __future__ import annotations
@@ -128,6 +136,16 @@ class RegisterField:
         if bad:
             raise ValueError(f"register field: unknown keys {sorted(bad)}")
         return cls(**d)
+
+
+def rtu_wire_skew_ns(reply_registers: int, baudrate: int, bits_per_char: int = 10) -> int:
+    """How far the request/reply midpoint lies after the sampling instant on an RTU line.
+
+    The controller samples when the last request byte arrived (8 bytes for FC 3/4) and the
+    driver sees the reply once its last byte is in (5 + 2n bytes): the midpoint is late by half
+    the difference of the two frames' times on the wire (8N1: 10 bits per byte)."""
+    request_bytes, reply_bytes = 8, 5 + 2 * reply_registers
+    return (reply_bytes - request_bytes) * bits_per_char * 1_000_000_000 // (2 * baudrate)
 
 
 _READ_FIELDS = ("left_ticks", "right_ticks", "left_speed", "right_speed", "status")
@@ -255,6 +273,9 @@ class ModbusBase:
         self._failing = False
         self._answered = False     # any reply since open: failures before it are the caller's
         self._next_connect = 0.0
+        # (sent, received) monotonic ns of the last transaction, as the trace hook saw them
+        self._wire: list[int | None] = [None, None]
+        self.last_window_ns: tuple[int, int] | None = None   # of the last good transaction
 
     # -- connection ---------------------------------------------------------------------
     def _make_client(self) -> Any:
@@ -263,14 +284,26 @@ class ModbusBase:
 
         # pymodbus logs every failed transaction at ERROR; the driver counts them instead.
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        t = self.config.timeout_s
+        t, tr = self.config.timeout_s, self._trace_packet
         if self._kind == "tcp":
-            return ModbusTcpClient(self._where, port=self._port, timeout=t, retries=0)
+            return ModbusTcpClient(self._where, port=self._port, timeout=t, retries=0,
+                                   trace_packet=tr)
         if self._kind == "rtu+tcp":
             return ModbusSerialClient(f"socket://{self._where}:{self._port}",
-                                      framer=FramerType.RTU, timeout=t, retries=0)
+                                      framer=FramerType.RTU, timeout=t, retries=0,
+                                      trace_packet=tr)
         return ModbusSerialClient(self._where, framer=FramerType.RTU, baudrate=self.baudrate,
-                                  timeout=t, retries=0)
+                                  timeout=t, retries=0, trace_packet=tr)
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        """pymodbus hook, called with each frame sent and each received chunk: notes when the
+        request went out and when the first reply bytes came in (the stamp's window)."""
+        now = time.monotonic_ns()
+        if sending:
+            self._wire = [now, None]
+        elif self._wire[1] is None:
+            self._wire[1] = now
+        return data
 
     def open(self) -> ModbusBase:
         """Connect; raises :class:`ModbusBaseError` (one line) when the device is not there."""
@@ -341,6 +374,7 @@ class ModbusBase:
 
         if self._client is None:
             raise ModbusBaseError(f"{self.config.url}: not open")
+        t_call = time.monotonic_ns()
         try:
             if not self._connected:
                 if time.monotonic() < self._next_connect:   # backing off: a missed sample
@@ -366,8 +400,16 @@ class ModbusBase:
             self._log_failure("no reply", exc)
             self._drain()
             return None
+        t_back = time.monotonic_ns()
         self._failing = False
         self._answered = True
+        sent, got = self._wire
+        # the hook's instants leave out encoding, decoding and a reconnect; an injected client
+        # without the hook is timed around the call
+        if sent is not None and got is not None and t_call <= sent <= got <= t_back:
+            self.last_window_ns = (sent, got)
+        else:
+            self.last_window_ns = (t_call, t_back)
         if rr.isError():
             code = getattr(rr, "exception_code", None)
             if code is None:  # some pymodbus paths return an error object for timeouts
@@ -383,6 +425,7 @@ class ModbusBase:
         """Read the controller once: a WheelTicks, or None after a counted error."""
         regmap = self.config.registers
         blocks: dict[str, tuple[int, list[int]]] = {}
+        windows: dict[str, tuple[int, int]] = {}
         for table, start, count in regmap.read_blocks():
             fn = "read_input_registers" if table == "input" else "read_holding_registers"
             rr = self._request(fn, start, count=count)
@@ -392,7 +435,17 @@ class ModbusBase:
                 self.errors.framing += 1
                 return None
             blocks[table] = (start, list(rr.registers))
-        stamp = time.monotonic_ns()
+            assert self.last_window_ns is not None        # set by every answered request
+            windows[table] = self.last_window_ns
+        # The counters were sampled while the tick block's request was at the controller.  A
+        # map that puts right_ticks in another table (block) than left_ticks gets the left
+        # block's instant: the two samples are one request apart, and one stamp has to do.
+        tick_table = regmap.left_ticks.table
+        sent, got = windows[tick_table]
+        stamp = (sent + got) // 2
+        if self._kind == "rtu":
+            stamp -= rtu_wire_skew_ns(len(blocks[tick_table][1]), self.baudrate)
+        uncertainty = (got - sent + 1) // 2
 
         def value(name: str) -> int | None:
             f = getattr(regmap, name)
@@ -418,7 +471,7 @@ class ModbusBase:
         return WheelTicks(seq=self._seq, stamp_ns=stamp, left=self._count["left_ticks"],
                           right=self._count["right_ticks"], left_speed=speeds[0],
                           right_speed=speeds[1], status=status, estop=estop,
-                          errors=self.errors.as_dict())
+                          errors=self.errors.as_dict(), stamp_uncertainty_ns=uncertainty)
 
     def poll(self, count: int | None = None, stop: Any | None = None,
              max_silence_s: float | None = None) -> Iterator[WheelTicks]:

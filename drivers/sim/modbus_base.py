@@ -13,6 +13,11 @@ Faults (:meth:`ModbusBaseTwin.set_fault`): ``"no_reply"`` (requests are dropped)
 (replies after ``delay_s``, late for a client with a shorter timeout) and ``"exception"``
 (exception response 4, device failure); ``None`` ends the fault.
 
+``response_delay_s`` (config, default 0) holds every answer that long after the counters were
+sampled at the request's arrival, like a controller on a slow bus or busy with its loop;
+:attr:`ModbusBaseTwin.samples` keeps the ``time.monotonic_ns()`` of each input-register sample
+(the newest 1000), so an in-process test can compare a driver's stamps with them.
+
 RTU: the server opens one end of a pty pair joined to a second pty by a relay thread; clients
 open the second pty's path (pymodbus opens serial ports exclusively, so one pty cannot serve
 both ends).  ``fault_rate`` flips reply bytes in the relay with that probability (line noise;
@@ -27,6 +32,7 @@ import random
 import select
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 from ..modbus_base import RegisterMap, encode_registers
@@ -50,6 +56,7 @@ class BaseTwinConfig:
     loop_script: bool = False
     device_id: int = 1
     registers: RegisterMap = field(default_factory=RegisterMap)
+    response_delay_s: float = 0.0               # answer this long after sampling the counters
 
 
 def _arc(pose: tuple[float, float, float], s_left: float, s_right: float,
@@ -87,6 +94,7 @@ class ModbusBaseTwin:
         self.fault: str | None = None
         self.delay_s = 0.5
         self.requests = 0
+        self.samples: deque[int] = deque(maxlen=1000)   # monotonic ns of input-register samples
         self.address = ""
         self.url = ""
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -213,8 +221,10 @@ class ModbusBaseTwin:
         if fault == "exception":
             return ExcCodes.DEVICE_FAILURE
         with self._lock:
-            self._advance()
+            now = time.monotonic_ns()
+            self._advance(now * 1e-9)
             if fc == 4:
+                self.samples.append(now)
                 for addr, w in self._input_registers().items():
                     if 0 <= addr - start < len(registers):
                         registers[addr - start] = w
@@ -226,6 +236,10 @@ class ModbusBaseTwin:
                 for i, f in enumerate((regs.left_setpoint, regs.right_setpoint)):
                     if f is not None:
                         self._cmd[i] = f.raw(merged, start) * f.scale
+        if self.config.response_delay_s > 0:
+            # the server builds the reply from ``registers`` after this returns; one client
+            # at a time, so nothing overwrites them while the answer is held
+            await asyncio.sleep(self.config.response_delay_s)
         return None
 
     def _device(self):
