@@ -289,9 +289,10 @@ class ModbusBase:
             return ModbusTcpClient(self._where, port=self._port, timeout=t, retries=0,
                                    trace_packet=tr)
         if self._kind == "rtu+tcp":
-            return ModbusSerialClient(f"socket://{self._where}:{self._port}",
-                                      framer=FramerType.RTU, timeout=t, retries=0,
-                                      trace_packet=tr)
+            # the TCP client with the RTU framer: the serial client on a socket:// URL sees
+            # in_waiting as 0 or 1 and takes the reply a byte per poll (~50 ms a read)
+            return ModbusTcpClient(self._where, port=self._port, framer=FramerType.RTU,
+                                   timeout=t, retries=0, trace_packet=tr)
         return ModbusSerialClient(self._where, framer=FramerType.RTU, baudrate=self.baudrate,
                                   timeout=t, retries=0, trace_packet=tr)
 
