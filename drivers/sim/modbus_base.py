@@ -386,7 +386,9 @@ def circle_script(radius: float, speed: float, wheel_radius: float, track: float
 
 def main(args) -> int:
     """``cgamap sim-device modbus-base [--rtu] [--port N]``: serve until SIGINT/SIGTERM."""
-    twin = ModbusBaseTwin(fault_rate=float(getattr(args, "fault_rate", 0.0) or 0.0),
+    # response_delay: read if the CLI offers it (``--response-delay``, seconds)
+    cfg = BaseTwinConfig(response_delay_s=float(getattr(args, "response_delay", 0.0) or 0.0))
+    twin = ModbusBaseTwin(cfg, fault_rate=float(getattr(args, "fault_rate", 0.0) or 0.0),
                           seed=int(getattr(args, "seed", 0) or 0))
     rtu, port = bool(getattr(args, "rtu", False)), int(getattr(args, "port", 0))
     return serve_until_signal(lambda: twin.start(rtu=rtu, port=port), twin.stop)
