@@ -195,17 +195,14 @@ class DistanceField:
         return sid, e, dseg, ok
 
     def padded_mask(self, thr: float, pad_m: float = 30.0) -> tuple[int, np.ndarray]:
-        """(pad, near-wall mask ``dist < thr`` with ``pad`` false pixels on every side),
-        cached: shifted slices of it read points up to ``pad_m`` metres from the laser."""
-        key = (round(thr, 4), pad_m)
-        cache = self.__dict__.setdefault("_masks", {})   # the sweep and its fallback
-        if key not in cache:
-            pad = int(np.ceil(pad_m / self.res))
-            m = np.zeros((self.dist.shape[0] + 2 * pad + 1, self.dist.shape[1] + 2 * pad + 1),
-                         np.uint8)
-            m[pad: pad + self.dist.shape[0], pad: pad + self.dist.shape[1]] = self.dist < thr
-            cache[key] = (pad, m)
-        return cache[key]
+        """(pad, near-wall mask ``dist < thr`` with ``pad`` false pixels on every side):
+        shifted slices of it read points up to ``pad_m`` metres from the laser.  Not cached:
+        only :meth:`phase_stack` (cached) reads it."""
+        pad = int(np.ceil(pad_m / self.res))
+        m = np.zeros((self.dist.shape[0] + 2 * pad + 1, self.dist.shape[1] + 2 * pad + 1),
+                     np.uint8)
+        m[pad: pad + self.dist.shape[0], pad: pad + self.dist.shape[1]] = self.dist < thr
+        return pad, m
 
     def phase_stack(self, thr: float, step: int,
                     tight: float | None = None) -> tuple[int, np.ndarray]:
