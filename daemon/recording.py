@@ -66,11 +66,7 @@ def to_record(msg: Any) -> dict:
                 "cgamap": {"seq": msg.seq, "stamp_ns": msg.stamp_ns, "theta": msg.theta,
                            "tv": msg.tv, "rv": msg.rv}}
     if isinstance(msg, WheelTicks):
-        return {"timestamp": _stamp(msg.stamp_ns),
-                "cgamap": {"seq": msg.seq, "stamp_ns": msg.stamp_ns, "left": msg.left,
-                           "right": msg.right, "left_speed": msg.left_speed,
-                           "right_speed": msg.right_speed, "status": msg.status,
-                           "estop": msg.estop}}
+        return {"timestamp": _stamp(msg.stamp_ns), "cgamap": msg.to_json()}
     if isinstance(msg, PanTiltState):
         # as a transform base -> head: yaw = pan (the tilt is left out of the quaternion)
         return {"timestamp": _stamp(msg.stamp_ns), "parent_frame_id": "base",
@@ -103,7 +99,9 @@ def from_record(topic: str, body: dict) -> Any | None:
     if topic == "/wheel_ticks":
         return WheelTicks(seq=c["seq"], stamp_ns=c["stamp_ns"], left=c["left"], right=c["right"],
                           left_speed=c.get("left_speed"), right_speed=c.get("right_speed"),
-                          status=c.get("status"), estop=c.get("estop", False))
+                          status=c.get("status"), estop=c.get("estop", False),
+                          errors=dict(c.get("errors") or {}),
+                          stamp_uncertainty_ns=int(c.get("stamp_uncertainty_ns", 0)))
     if topic == "/pantilt":
         return PanTiltState(seq=c["seq"], stamp_ns=c["stamp_ns"], pan=c["pan"], tilt=c["tilt"],
                             moving=c.get("moving", False))
