@@ -235,3 +235,26 @@ def test_top_cells_are_the_best_counts_of_each_rotation(nrot, h, w, k, seed):
         assert np.array_equal(acc[r, iy[r], ix[r]], sc[r])           # counts where they say
         assert len({(a, b) for a, b in zip(iy[r], ix[r], strict=True)}) == kk       # distinct cells
         assert sorted(sc[r]) == sorted(np.sort(acc[r].ravel())[-kk:])  # the k best
+
+
+def test_phase_stack_reads_the_mask_at_a_stride_with_the_tight_count_in_the_low_bits():
+    # one wall along y = 0 from x = 0 to 4; wide 0.41 m, tight 0.2 m: a pixel on the wall
+    # holds 16 + 1, one 0.3 m off it 16, one 1 m off it 0; the phase (py, px) at (j, i)
+    # is the padded mask's pixel (py + j * step, px + i * step)
+    f = DistanceField(_segment_map([(0, 0, 4, 0), (0, 3, 4, 3)]), 0.05)
+    step = 6
+    pad, stack = f.phase_stack(0.41, step, tight=0.2)
+    assert stack.dtype == np.uint8 and stack.shape[0] == step * step
+
+    def at(x: float, y: float) -> int:
+        # the padded mask's pixel of world point (x, y), read through its phase
+        px = int(round((x - f.lo[0]) / f.res)) + pad
+        py = int(round((y - f.lo[1]) / f.res)) + pad
+        return int(stack[(py % step) * step + px % step, py // step, px // step])
+
+    assert at(2.0, 0.0) == 17 and at(2.0, 0.3) == 16 and at(2.0, 1.0) == 0
+    assert at(1.0, 3.0) == 17 and at(-3.0, 0.0) == 0
+    # without the tight count: a plain 0/1 mask
+    _, plain = f.phase_stack(0.41, step)
+    assert set(np.unique(plain).tolist()) <= {0, 1}
+    assert int(plain.sum()) == np.count_nonzero(stack >= 16)
