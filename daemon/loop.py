@@ -84,6 +84,12 @@ class WheelOdometry:
 
 # -- the 2D mapper adapter ------------------------------------------------------------------
 
+# relocalisation: another place scoring within this of the best makes the answer ambiguous
+# (the fraction of scan points on map walls); a lost robot does not jump to such a pose
+RELOC_AMBIGUITY = 0.05
+RELOC_RIVALS = 4  # rivals reported with an answer
+
+
 class Mapper2D:
     """``mapping.slam2d.Mapper`` behind a small interface: step, segments, state, set_pose.
 
@@ -176,9 +182,11 @@ class Mapper2D:
         base = self.m.base_pose(self.m.poses)
         return dict(zip(self.node_stamps, base, strict=True))
 
-    def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float] | None:
-        """Global pose of ``scan`` in the map by Hough-domain relocalisation, or None."""
-        from cgamap.mapping.relocalize import DistanceField, RelocParams, relocalize
+    def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float, list] | None:
+        """Global pose of ``scan`` in the map by Hough-domain relocalisation, its score and
+        its rivals (look-alike places scoring within ``RELOC_AMBIGUITY``, as (base pose,
+        score)), or None."""
+        from cgamap.mapping.relocalize import DistanceField, RelocParams, relocalize, rivals
         from cgamap.mapping.segments import extract_segments
 
         seg = extract_segments(scan.ranges, scan.angle_min, scan.angle_increment,
@@ -194,7 +202,10 @@ class Mapper2D:
         res = relocalize(self.m.map, seg, self._field)
         if not res.found or res.pose is None:
             return None
-        return self.m.base_pose(res.pose), float(res.score)
+        best = next((h for h in res.hypotheses if np.array_equal(h.pose, res.pose)), None)
+        alts = [] if best is None else rivals(res.hypotheses, best, RELOC_AMBIGUITY, 0.5)
+        return (self.m.base_pose(res.pose), float(res.score),
+                [(self.m.base_pose(h.pose), float(h.score)) for h in alts[:RELOC_RIVALS]])
 
 
 # -- the 3D plane map ---------------------------------------------------------------------
@@ -466,10 +477,13 @@ class MappingLoop:
             self.counts["lost"] += 1
             log.warning("match quality below %.2f for %d scans: relocalising",
                         self.lost_quality, self.lost_after)
-            self.relocalize(scan)
+            self.relocalize(scan, jump_if_ambiguous=False)
 
-    def relocalize(self, scan: LaserScan | None = None) -> dict:
-        """Relocalise on ``scan`` (default: the last processed one)."""
+    def relocalize(self, scan: LaserScan | None = None, jump_if_ambiguous: bool = True) -> dict:
+        """Relocalise on ``scan`` (default: the last processed one).  The answer names the
+        look-alike places (``alternatives``: x, y, theta, score) and says ``ambiguous`` when
+        there are any; with ``jump_if_ambiguous`` false (a lost robot's own attempt) such an
+        answer leaves the pose alone: the robot moves on and tries again."""
         self.counts["relocalize_tries"] += 1
         if self.mapper is None or not hasattr(self.mapper, "relocalize"):
             return {"ok": False, "error": "no 2D mapper"}
@@ -479,10 +493,17 @@ class MappingLoop:
         res = self.mapper.relocalize(scan)
         if res is None:
             return {"ok": False, "error": "relocalisation found no pose"}
-        pose, score = res
+        pose, score, *more = res
+        alts = [[*map(float, p), round(sc, 4)] for p, sc in (more[0] if more else [])]
+        if alts and not jump_if_ambiguous:
+            self.counts["relocalize_ambiguous"] += 1
+            return {"ok": False, "error": "relocalisation is ambiguous (look-alike places)",
+                    "ambiguous": True, "pose": [*map(float, pose)], "score": score,
+                    "alternatives": alts}
         self.set_pose(pose, reason="relocalize")
         self.counts["relocalized"] += 1
-        return {"ok": True, "pose": self.pose_list(), "score": score}
+        return {"ok": True, "pose": self.pose_list(), "score": score, "ambiguous": bool(alts),
+                "alternatives": alts}
 
     # -- the finishing pass on demand ------------------------------------------------------
     # Computed on a snapshot, applied between scans: the pass over 20 000 nodes takes seconds

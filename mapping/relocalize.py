@@ -288,6 +288,20 @@ def _line_params(a: np.ndarray, b: np.ndarray):
     return n, c, np.mod(phi, np.pi)
 
 
+def rivals(hypotheses: list[Hypothesis], best: Hypothesis, margin: float,
+           min_dist: float = 0.3) -> list[Hypothesis]:
+    """The hypotheses that score within ``margin`` of ``best`` at a place more than
+    ``min_dist`` from it, one per place (best first): a look-alike corridor or room.  A
+    pose with rivals is ambiguous; a robot should move and look again before it jumps."""
+    out: list[Hypothesis] = []
+    for h in hypotheses:
+        if h is best or h.score <= best.score - margin:
+            continue
+        if all(np.hypot(*(h.pose[:2] - o.pose[:2])) > min_dist for o in [best, *out]):
+            out.append(h)
+    return out
+
+
 def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
                params: RelocParams | None = None) -> RelocResult:
     """Pose of the laser in the map from one scan's segments (laser frame) and points."""

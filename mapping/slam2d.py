@@ -33,7 +33,7 @@ from .odometry import compose_pose2d as compose
 from .odometry import relative
 from .odometry import wrap_angle as wrap
 from .posegraph import PoseGraph
-from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize
+from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize, rivals
 from .segments import SegmentParams, Segments, extract_segments
 
 
@@ -380,10 +380,7 @@ class Mapper:
                     self.loop_stats["low_score"] += 1
                     continue
                 best = near[0]
-                rivals = [h for h in res.hypotheses if h is not best
-                          and np.hypot(*(h.pose[:2] - best.pose[:2])) > 0.3
-                          and h.score > best.score - LP.ambiguity]
-                if rivals:
+                if rivals(res.hypotheses, best, LP.ambiguity):
                     self.loop_stats["ambiguous"] += 1
                     continue
                 if LP.confirm:

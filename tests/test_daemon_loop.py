@@ -103,6 +103,30 @@ def test_low_quality_for_long_triggers_relocalisation():
     assert not loop.lost
 
 
+def test_a_lost_robot_does_not_jump_to_an_ambiguous_pose():
+    """A look-alike place scoring as well: the lost robot's own attempt keeps its pose and
+    says why; asked for, relocalisation takes the best pose and names the rival."""
+
+    class LookAlike(FakeMapper):
+        def relocalize(self, scan):
+            self.reloc_calls += 1
+            return np.array([5.0, 6.0, 0.5]), 0.9, [(np.array([15.0, 6.0, 0.5]), 0.88)]
+
+    fake = LookAlike(0.05)
+    loop = MappingLoop(cfg(lost_quality=0.2, lost_after=4, min_travel=0.0, min_turn=0.0,
+                           scan_max_rate=1000.0), mapper2d=fake, devices={})
+    world = get_world("corridor")
+    for i in range(4):
+        loop.handle("laser", scan_at(world, 0.1 * i, i, (i + 1) * 10_000_000))
+        loop.process(odometry_live=False)
+    assert fake.reloc_calls == 1 and loop.counts["relocalize_ambiguous"] == 1
+    assert loop.counts["relocalized"] == 0
+    assert loop.current_pose().tolist() != [5.0, 6.0, 0.5]
+    got = loop.relocalize()
+    assert got["ok"] and got["ambiguous"] and got["alternatives"] == [[15.0, 6.0, 0.5, 0.88]]
+    assert loop.current_pose().tolist() == [5.0, 6.0, 0.5]
+
+
 def _drive(loop: MappingLoop, world, n: int) -> None:
     """n scans along the world's path, 0.25 s apart, each with the odometry of its instant."""
     for i in range(n):

@@ -58,6 +58,25 @@ def test_symmetric_room_gives_ranked_hypotheses():
     assert any(np.hypot(*(h.pose[:2] - mirrored[:2])) < 0.05 for h in near)
 
 
+def test_rivals_name_each_look_alike_place_once():
+    """The box's point-symmetric pose is a rival of the best; near-duplicates of one place
+    count once, and hypotheses well below the best are none."""
+    from cgamap.mapping.relocalize import Hypothesis, rivals
+
+    w = world([(-4, -2, 4, -2), (4, -2, 4, 2), (4, 2, -4, 2), (-4, 2, -4, -2)])
+    m = scanned_map(w, [(0.0, 0.0, 0.0)])
+    r = relocalize(m, segments_from_scan(scan(w, (1.0, 0.5, 0.3), n=720, fov=2 * np.pi)))
+    best = r.hypotheses[0]
+    got = rivals(r.hypotheses, best, 0.05)
+    assert len(got) == 1
+    assert np.hypot(*(got[0].pose[:2] + best.pose[:2])) < 0.1  # the mirror image
+    h = [Hypothesis(np.array([0.0, 0.0, 0.0]), 0.9), Hypothesis(np.array([3.0, 0, 0]), 0.88),
+         Hypothesis(np.array([3.1, 0, 0]), 0.87), Hypothesis(np.array([9.0, 0, 0]), 0.7)]
+    assert rivals(h, h[0], 0.05) == [h[1]]
+    assert rivals(h, h[0], 0.05, min_dist=0.05) == [h[1], h[2]]
+    assert rivals(h, h[0], 0.01) == []
+
+
 def test_unrelated_scan_is_not_found(loop_world):
     _, _, m = loop_world
     # a triangular room: its walls meet at 60 degrees, no pair of the map's walls does
