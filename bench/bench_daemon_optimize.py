@@ -36,15 +36,15 @@ def _timed_pass(loop) -> dict:
 def _intel(seeds=(0, 1)) -> dict:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from cgamap.daemon.loop import MappingLoop
-    from cgamap.drivers.carmen import read_scans
     from cgamap.mapping.evaluation import ate
     from cgamap.mapping.odometry import add_odometry_noise
-    from conftest import data_dir
 
-    log = data_dir() / "laser" / "intel-corrected.log.gz"
-    if not log.exists():
-        return {"skipped": f"{log} not found"}
-    scans = read_scans(log)
+    from .intel import missing
+    from .intel import scans as intel_scans
+
+    if missing():
+        return missing()
+    scans = list(intel_scans())
     ref_all = np.array([s.pose_ref for s in scans])
     index = {s.stamp_ns: k for k, s in enumerate(scans)}
     out = {}

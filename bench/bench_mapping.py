@@ -5,33 +5,28 @@ from __future__ import annotations
 
 import numpy as np
 
-LOG = "laser/intel-corrected.log.gz"
+from .intel import LOG, build, missing, scans
 
 
 def run() -> dict:
-    from cgamap.drivers.carmen import read_scans
-    from cgamap.mapping.odometry import add_odometry_noise
     from cgamap.mapping.offline import build_map, relocalize_trials
-    from conftest import data_dir  # bench/run.py puts tests/ on sys.path
 
-    path = data_dir() / LOG
-    if not path.exists():
-        return {"skipped": f"{LOG} not found under {data_dir()}"}
-    scans = read_scans(path)
-    odo = add_odometry_noise(np.array([s.pose_odom for s in scans]), "high", seed=0)
-    res = build_map(scans, odo)
+    if missing():
+        return missing()
+    res = build(0)
+    log = list(scans())
     out = {"log": LOG, "odom_noise": "high", "seed": 0, "build": res.report}
     # relocalised poses are in the map's frame: scored against the reference after the
     # build's rigid alignment (the ATE gauge), as `cgamap relocalize` does
-    out["relocalize"] = relocalize_trials(res.map, scans, 200, seed=0,
+    out["relocalize"] = relocalize_trials(res.map, log, 200, seed=0,
                                           alignment=res.report["alignment_to_reference"])
-    out["relocalize_unaligned"] = relocalize_trials(res.map, scans, 200, seed=0)
+    out["relocalize_unaligned"] = relocalize_trials(res.map, log, 200, seed=0)
     # the same trials scored against the map's own trajectory (its frame), which separates
     # relocalisation from the map's residual error against the reference
-    out["relocalize_vs_map_trajectory"] = relocalize_trials(res.map, scans, 200, seed=0,
+    out["relocalize_vs_map_trajectory"] = relocalize_trials(res.map, log, 200, seed=0,
                                                             truth=res.poses)
     # the same log with the recorded (corrected) odometry: the mapper's own floor
-    clean = build_map(scans, np.array([s.pose_odom for s in scans]))
+    clean = build_map(log, np.array([s.pose_odom for s in log]))
     keys = ("ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg", "ms_per_scan_median")
     out["build_odom_noise_none"] = {k: clean.report[k] for k in keys}
     return out

@@ -6,30 +6,30 @@ from __future__ import annotations
 
 import numpy as np
 
-LOG = "laser/intel-corrected.log.gz"
+from .intel import LOG, build, missing
+from .intel import scans as intel_scans
+
 RELATIONS = "laser/intel.relations"
 SEEDS = (0, 1, 2, 3)
 
 
 def run() -> dict:
-    from cgamap.drivers.carmen import read_scans
     from cgamap.mapping.evaluation import load_relations, relations_error
     from cgamap.mapping.odometry import add_odometry_noise
     from cgamap.mapping.offline import build_map
     from cgamap.mapping.slam2d import MapperParams, NeighbourParams
     from conftest import data_dir  # bench/run.py puts tests/ on sys.path
 
-    path = data_dir() / LOG
-    if not path.exists():
-        return {"skipped": f"{LOG} not found under {data_dir()}"}
-    scans = read_scans(path)
+    if missing():
+        return missing()
+    scans = list(intel_scans())
     odo0 = np.array([s.pose_odom for s in scans])
     keys = ("ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg", "ms_per_scan_median",
             "final_optimisation_ms", "loop_closures")
     out: dict = {"log": LOG, "odom_noise": "high", "seeds": {}}
     first = None
     for seed in SEEDS:
-        res = build_map(scans, add_odometry_noise(odo0, "high", seed))
+        res = build(seed)
         out["seeds"][str(seed)] = {k: res.report[k] for k in keys}
         first = first or res
     ate = np.array([v["ate_trans_m"] for v in out["seeds"].values()])

@@ -9,7 +9,8 @@ import time
 
 import numpy as np
 
-LOG = "laser/intel-corrected.log.gz"
+from .intel import LOG, build, missing
+from .intel import scans as intel_scans
 
 
 def _fallback_figures(lmap, scans, idx) -> dict:
@@ -87,17 +88,12 @@ def _fallback_figures(lmap, scans, idx) -> dict:
 
 
 def run() -> dict:
-    from cgamap.drivers.carmen import read_scans
-    from cgamap.mapping.odometry import add_odometry_noise
-    from cgamap.mapping.offline import build_map, relocalize_trials
-    from conftest import data_dir  # bench/run.py puts tests/ on sys.path
+    from cgamap.mapping.offline import relocalize_trials
 
-    path = data_dir() / LOG
-    if not path.exists():
-        return {"skipped": f"{LOG} not found under {data_dir()}"}
-    scans = read_scans(path)
-    odo = add_odometry_noise(np.array([s.pose_odom for s in scans]), "high", seed=0)
-    res = build_map(scans, odo)
+    if missing():
+        return missing()
+    res = build(0)
+    scans = list(intel_scans())
     out: dict = {"log": LOG, "odom_noise": "high", "map_seed": 0, "segments": len(res.map)}
     out["relocalize"] = relocalize_trials(res.map, scans, 200, seed=0,
                                           alignment=res.report["alignment_to_reference"])

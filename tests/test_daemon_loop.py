@@ -87,14 +87,21 @@ class FakeMapper:
         return np.array([5.0, 6.0, 0.5]), 0.9
 
 
-def test_low_quality_for_long_triggers_relocalisation():
-    fake = FakeMapper(0.05)
+def _lose_track(fake: FakeMapper) -> MappingLoop:
+    """A loop whose matches stay poor for ``lost_after`` scans: it relocalises once."""
     loop = MappingLoop(cfg(lost_quality=0.2, lost_after=4, min_travel=0.0, min_turn=0.0,
                            scan_max_rate=1000.0), mapper2d=fake, devices={})
     world = get_world("corridor")
     for i in range(4):
         loop.handle("laser", scan_at(world, 0.1 * i, i, (i + 1) * 10_000_000))
         loop.process(odometry_live=False)
+    return loop
+
+
+def test_low_quality_for_long_triggers_relocalisation():
+    fake = FakeMapper(0.05)
+    loop = _lose_track(fake)
+    world = get_world("corridor")
     assert fake.reloc_calls == 1 and loop.counts["relocalized"] == 1
     assert loop.current_pose().tolist() == [5.0, 6.0, 0.5]
     fake.quality = 0.9
@@ -113,12 +120,7 @@ def test_a_lost_robot_does_not_jump_to_an_ambiguous_pose():
             return np.array([5.0, 6.0, 0.5]), 0.9, [(np.array([15.0, 6.0, 0.5]), 0.88)]
 
     fake = LookAlike(0.05)
-    loop = MappingLoop(cfg(lost_quality=0.2, lost_after=4, min_travel=0.0, min_turn=0.0,
-                           scan_max_rate=1000.0), mapper2d=fake, devices={})
-    world = get_world("corridor")
-    for i in range(4):
-        loop.handle("laser", scan_at(world, 0.1 * i, i, (i + 1) * 10_000_000))
-        loop.process(odometry_live=False)
+    loop = _lose_track(fake)
     assert fake.reloc_calls == 1 and loop.counts["relocalize_ambiguous"] == 1
     assert loop.counts["relocalized"] == 0
     assert loop.current_pose().tolist() != [5.0, 6.0, 0.5]
