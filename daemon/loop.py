@@ -202,8 +202,7 @@ class Mapper2D:
         res = relocalize(self.m.map, seg, self._field)
         if not res.found or res.pose is None:
             return None
-        best = next((h for h in res.hypotheses if np.array_equal(h.pose, res.pose)), None)
-        alts = [] if best is None else rivals(res.hypotheses, best, RELOC_AMBIGUITY, 0.5)
+        alts = rivals(res.hypotheses, res.hypotheses[0], RELOC_AMBIGUITY, 0.5)
         return (self.m.base_pose(res.pose), float(res.score),
                 [(self.m.base_pose(h.pose), float(h.score)) for h in alts[:RELOC_RIVALS]])
 
@@ -493,8 +492,8 @@ class MappingLoop:
         res = self.mapper.relocalize(scan)
         if res is None:
             return {"ok": False, "error": "relocalisation found no pose"}
-        pose, score, *more = res
-        alts = [[*map(float, p), round(sc, 4)] for p, sc in (more[0] if more else [])]
+        pose, score, rivals = res
+        alts = [[*map(float, p), round(sc, 4)] for p, sc in rivals]
         if alts and not jump_if_ambiguous:
             self.counts["relocalize_ambiguous"] += 1
             return {"ok": False, "error": "relocalisation is ambiguous (look-alike places)",

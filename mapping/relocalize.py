@@ -127,7 +127,7 @@ class RelocResult:
     found: bool
     pose: np.ndarray | None
     score: float
-    hypotheses: list[Hypothesis]
+    hypotheses: list[Hypothesis]  # ranked; when found, the first is the answer
 
 
 class DistanceField:

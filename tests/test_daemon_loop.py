@@ -84,7 +84,7 @@ class FakeMapper:
 
     def relocalize(self, scan):
         self.reloc_calls += 1
-        return np.array([5.0, 6.0, 0.5]), 0.9
+        return np.array([5.0, 6.0, 0.5]), 0.9, []
 
 
 def _lose_track(fake: FakeMapper) -> MappingLoop:
