@@ -149,6 +149,10 @@ class DistanceField:
         self._img, self._pa, self._pb = img, pa, pb
         self.a, self.b = np.asarray(lmap.a, float), np.asarray(lmap.b, float)
         self._seg_id: np.ndarray | None = None
+        self._tab: np.ndarray | None = None    # per segment: a, u, length (built with seg_id)
+        self._flat: np.ndarray | None = None   # dist raveled, one far cell appended
+        self._stacks: dict = {}                # phase_stack's, per (thr, step, tight)
+        self._grid_dist: dict = {}             # grid_dist's, per step
 
     @property
     def seg_id(self) -> np.ndarray:
@@ -168,6 +172,7 @@ class DistanceField:
             L = np.maximum(np.linalg.norm(d, axis=-1), 1e-9)
             self.u = d / L[:, None]                       # unit directions
             self.seg_len = L
+            self._tab = np.column_stack([self.a, self.u, self.seg_len])
         return self._seg_id
 
     def nearest(self, gx: np.ndarray, gy: np.ndarray, full: bool = False):
@@ -177,8 +182,6 @@ class DistanceField:
         ``full``, also the segment's direction (ux, uy), the point's position t along it
         and its length (what the ICP needs, without gathering them again)."""
         sid_grid = self.seg_id
-        if not hasattr(self, "_tab"):   # per segment: a, u, length (one gather per point)
-            self._tab = np.column_stack([self.a, self.u, self.seg_len])
         qx = np.floor((gx - self.lo[0]) / self.res + 0.5).astype(np.int64)
         qy = np.floor((gy - self.lo[1]) / self.res + 0.5).astype(np.int64)
         ok = (qx >= 0) & (qy >= 0) & (qx < self.size[0]) & (qy < self.size[1])
@@ -215,7 +218,7 @@ class DistanceField:
         most 15 points is then the wide count and the tight count in one byte, ordered by
         the wide count first."""
         key = (round(thr, 4), step, None if tight is None else round(tight, 4))
-        cache = self.__dict__.setdefault("_stacks", {})
+        cache = self._stacks
         if key not in cache:
             pad, m = self.padded_mask(thr)
             if tight is not None:
@@ -238,7 +241,7 @@ class DistanceField:
     def grid_dist(self, step: int) -> np.ndarray:
         """The distance field at the sweep's grid positions (every ``step``-th pixel), cached:
         what the sweep's free-space band is cut from."""
-        cache = self.__dict__.setdefault("_grid_dist", {})
+        cache = self._grid_dist
         if step not in cache:
             cache[step] = np.ascontiguousarray(self.dist[::step, ::step])
         return cache[step]
@@ -249,7 +252,7 @@ class DistanceField:
 
     def lookup_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """:meth:`lookup` for separate coordinate arrays (nearest cell)."""
-        if not hasattr(self, "_flat"):
+        if self._flat is None:
             # one far cell appended: off-grid points index it
             self._flat = np.append(self.dist.ravel(), np.float32(self.far))
         qx = np.floor((x - self.lo[0]) / self.res + 0.5).astype(np.int64)
