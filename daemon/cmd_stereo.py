@@ -183,10 +183,12 @@ def _grab(args: argparse.Namespace, grabber, writer, cv2, DeviceNotFound) -> int
 def _input_problem(args: argparse.Namespace, exc: Exception) -> str:
     """One line for a damaged input (a recording's frames.jsonl or calibration YAML)."""
     from cgamap.drivers.stereo_calib import CalibrationFileError
+    from cgamap.drivers.stereo_replay import RecordingIndexError
     from cgamap.drivers.yaml_errors import yaml_error_text
 
     where = f"--device {args.device}: " if args.device else ""
-    if isinstance(exc, CalibrationFileError):   # names the file and the problem
+    # both name the file and the problem (the index error its line number)
+    if isinstance(exc, (CalibrationFileError, RecordingIndexError)):
         return f"{where}{exc}"
     if isinstance(exc, json.JSONDecodeError):
         return f"{where}frames.jsonl is damaged (line {exc.lineno}: {exc.msg})"

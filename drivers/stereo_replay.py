@@ -12,12 +12,19 @@ Layout of a recording folder (what ``cgamap stereo --out DIR`` writes; ``left/``
     points/000000.npy       # optional: (n, 3) float32 points, left optical frame (or global)
 
 Replay pushes every pair through the same rectify + SGBM path as the live cameras.
+
+Crash safety: a frame's files reach the disk before its ``frames.jsonl`` line, and each line
+is one ``write`` followed by ``fsync``, so a crash or power cut can leave at most the last line
+torn (cut short, no newline).  Replay drops such a tail (counted in ``torn_tail``, one
+warning); a damaged line anywhere else is an error naming its line number.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import logging
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -35,6 +42,9 @@ from .stereo_calib import (
 from .stereo_points import CameraMount
 from .stereo_sgbm import SgbmParams, make_matcher
 
+log = logging.getLogger(__name__)
+
+INDEX_NAME = "frames.jsonl"
 DISPARITY_SCALE = 256.0  # 16-bit PNG disparity: value / 256 pixels (KITTI convention)
 IMAGE_EXT = (".png", ".pgm", ".ppm", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -49,6 +59,119 @@ def decode_disparity(raw: np.ndarray) -> np.ndarray:
     d = raw.astype(np.float32) / DISPARITY_SCALE
     d[raw == 0] = np.nan
     return d
+
+
+class RecordingIndexError(ValueError):
+    """A line of a recording's ``frames.jsonl`` other than a torn last one is damaged."""
+
+    def __init__(self, path: Path, lineno: int, problem: str):
+        super().__init__(f"{path.name} is damaged (line {lineno}: {problem})")
+        self.path, self.lineno, self.problem = path, lineno, problem
+
+
+#: the index fields that name a file of the frame (relative to the recording's folder)
+FILE_FIELDS = ("left", "right", "disparity", "depth", "points")
+
+
+def _parse_record(raw: bytes, lineno: int, path: Path) -> dict:
+    """One index line as a record; :class:`RecordingIndexError` when it is not one."""
+    try:
+        rec = json.loads(raw)
+    except UnicodeDecodeError:
+        raise RecordingIndexError(path, lineno, "not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise RecordingIndexError(path, lineno, f"{exc.msg} (column {exc.colno})") from None
+    if not isinstance(rec, dict):
+        raise RecordingIndexError(path, lineno, f"a JSON {type(rec).__name__}, not an object")
+    if not isinstance(rec.get("left"), str):
+        raise RecordingIndexError(path, lineno, 'no "left" image path')
+    for key in FILE_FIELDS:
+        if key in rec and not isinstance(rec[key], str):
+            raise RecordingIndexError(path, lineno, f'"{key}" is not a file path')
+    return rec
+
+
+def _is_json(raw: bytes) -> bool:
+    try:
+        json.loads(raw)
+    except ValueError:   # JSONDecodeError, UnicodeDecodeError
+        return False
+    return True
+
+
+def read_index(path: str | Path) -> tuple[list[dict], int]:
+    """The records of a ``frames.jsonl`` and how many torn lines were dropped (0 or 1).
+
+    A last line with no newline that is not valid JSON is a write cut short by a crash: it
+    is dropped (and a warning logged).  Any other damaged line raises
+    :class:`RecordingIndexError` with its 1-based line number; blank lines are skipped."""
+    path = Path(path)
+    lines = path.read_bytes().split(b"\n")
+    tail = lines.pop()          # b"" when the file ends with a newline, as a whole one does
+    records = [_parse_record(raw, i, path) for i, raw in enumerate(lines, 1) if raw.strip()]
+    if not tail.strip():
+        return records, 0
+    if _is_json(tail):          # whole but for its newline: a record (or damage) like any other
+        records.append(_parse_record(tail, len(lines) + 1, path))
+        return records, 0
+    log.warning("%s: last line (%d) is torn, %d bytes cut short by a crash: dropped it, "
+                "%d whole frames remain", path, len(lines) + 1, len(tail), len(records))
+    return records, 1
+
+
+def repair_index_tail(path: str | Path) -> int:
+    """Make an existing ``frames.jsonl`` end on a whole line before more are appended: a torn
+    last line (no newline, not JSON) is truncated away, a whole one missing only its newline
+    gets it.  Returns the number of lines dropped (0 or 1)."""
+    path = Path(path)
+    with open(path, "rb+") as f:
+        data = f.read()
+        if not data or data.endswith(b"\n"):
+            return 0
+        cut = data.rfind(b"\n") + 1            # 0: the only line is the torn one
+        if data[cut:].strip() and _is_json(data[cut:]):
+            f.write(b"\n")
+            dropped = 0
+        else:
+            f.truncate(cut)
+            dropped = 1 if data[cut:].strip() else 0
+            if dropped:
+                log.warning("%s: truncated a torn last line (%d bytes) before appending",
+                            path, len(data) - cut)
+        f.flush()
+        os.fsync(f.fileno())
+    return dropped
+
+
+def append_line(path: Path, line: bytes) -> None:
+    """Append one whole line: a single ``write``, then ``fsync``.  If the write fails or
+    comes up short (full disk), the file is cut back to where it was, so the index never
+    keeps a partial line it could help; a power cut mid-write leaves at most a torn tail,
+    which :func:`read_index` drops."""
+    created = not path.exists()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        start = os.fstat(fd).st_size
+        try:
+            n = os.write(fd, line)
+            if n != len(line):
+                raise OSError(28, f"No space left on device (wrote {n} of {len(line)} bytes)",
+                              str(path))
+            os.fsync(fd)
+        except BaseException:
+            try:
+                os.ftruncate(fd, start)
+            except OSError:
+                pass
+            raise
+    finally:
+        os.close(fd)
+    if created:  # the new file's directory entry must survive a power cut too
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
 
 
 #: How a recording's files reach the disk: ``write_file(path, data)``.
@@ -84,7 +207,10 @@ class SequenceWriter:
     ``cgamap stereo`` gives ``mapping.fileio.write_bytes_atomic`` (temp file, fsync, rename),
     so a frame cut short by a full disk or a kill is never left under its final name.  The
     default, ``Path.write_bytes``, writes in place (tests, scratch folders).  ``frames.jsonl``
-    gets a frame's line only after all of the frame's files are written."""
+    gets a frame's line only after all of the frame's files are written, as one write and an
+    fsync (:func:`append_line`), so a line never names a file that is not on the disk.  On a
+    folder that already has an index, a torn last line is truncated first
+    (:func:`repair_index_tail`), so appended lines never glue onto it."""
 
     def __init__(self, out: str | Path, save_points: bool = True, stride: int = 1,
                  max_depth: float = np.inf, global_frame: bool = False,
@@ -98,6 +224,9 @@ class SequenceWriter:
         self.write_file = write_file
         self._calib_written = False
         self.count = 0
+        self.torn_tail = 0    # torn lines truncated from an existing index
+        if (self.out / INDEX_NAME).is_file():
+            self.torn_tail = repair_index_tail(self.out / INDEX_NAME)
 
     def encode(self, frame: StereoFrame) -> tuple[dict, dict[str, bytes]]:
         """A frame's index record and its files (path relative to the folder -> bytes)."""
@@ -146,8 +275,7 @@ class SequenceWriter:
         for rel, data in files.items():
             (self.out / rel).parent.mkdir(exist_ok=True)
             self.write_file(self.out / rel, data)
-        with open(self.out / "frames.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
+        append_line(self.out / INDEX_NAME, (json.dumps(rec) + "\n").encode())
         self.count += 1
         return rec
 
@@ -158,7 +286,10 @@ def _list_images(folder: Path) -> list[Path]:
 
 class ReplayGrabber(StereoGrabber):
     """Replays a recording folder through the rectify + SGBM path (``use_recorded=True``
-    loads stored disparity/depth instead of matching again)."""
+    loads stored disparity/depth instead of matching again).
+
+    ``torn_tail`` counts the torn last index line dropped at ``open`` (0 or 1); a frame whose
+    files are missing or unreadable raises ``ValueError`` naming the frame and the file."""
 
     model = "replay"
 
@@ -173,6 +304,7 @@ class ReplayGrabber(StereoGrabber):
         self.records: list[dict] = []
         self.calib: StereoCalibration | None = None
         self.index = 0
+        self.torn_tail = 0
         self._matcher = None
 
     def open(self) -> None:
@@ -182,10 +314,10 @@ class ReplayGrabber(StereoGrabber):
         if not cpath.exists():
             raise FileNotFoundError(f"stereo replay: calibration file {cpath} not found")
         self.calib = load_calibration(cpath)
-        index = self.folder / "frames.jsonl"
+        index = self.folder / INDEX_NAME
+        self.torn_tail = 0
         if index.exists():
-            self.records = [json.loads(line) for line in index.read_text().splitlines()
-                            if line.strip()]
+            self.records, self.torn_tail = read_index(index)
         else:
             lefts = _list_images(self.folder / "left") if (self.folder / "left").is_dir() \
                 else []
@@ -204,9 +336,32 @@ class ReplayGrabber(StereoGrabber):
     def __len__(self) -> int:
         return len(self.records)
 
-    def grab(self, timeout: float = 5.0) -> StereoFrame:
+    def _file(self, rec: dict, key: str, seq: int) -> Path:
+        """The path of a frame's file; ValueError (one line) naming both when it is gone."""
+        path = self.folder / rec[key]
+        if not path.is_file():
+            raise ValueError(f"stereo replay: {self.folder}: frame {seq}: {key} file "
+                             f"{rec[key]} is missing")
+        return path
+
+    def _image(self, rec: dict, key: str, seq: int) -> np.ndarray:
         import cv2
 
+        img = cv2.imread(str(self._file(rec, key, seq)), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"stereo replay: {self.folder}: frame {seq}: {key} file "
+                             f"{rec[key]} is not a readable image")
+        return img
+
+    def _array(self, rec: dict, key: str, seq: int) -> np.ndarray:
+        path = self._file(rec, key, seq)
+        try:
+            return np.load(path)
+        except (OSError, ValueError, EOFError) as exc:
+            raise ValueError(f"stereo replay: {self.folder}: frame {seq}: {key} file "
+                             f"{rec[key]} is not a readable .npy array ({exc})") from None
+
+    def grab(self, timeout: float = 5.0) -> StereoFrame:
         if self.calib is None:
             self.open()
         if self.index >= len(self.records):
@@ -215,13 +370,10 @@ class ReplayGrabber(StereoGrabber):
             self.index = 0
         rec = self.records[self.index]
         self.index += 1
-        left = cv2.imread(str(self.folder / rec["left"]), cv2.IMREAD_UNCHANGED)
-        right = cv2.imread(str(self.folder / rec["right"]), cv2.IMREAD_UNCHANGED) \
-            if "right" in rec else None
-        if left is None or (right is None and "right" in rec):
-            raise ValueError(f"stereo replay: cannot read images of frame {rec.get('seq')}")
-        stamp = int(rec.get("stamp_ns", time.monotonic_ns()))
         seq = int(rec.get("seq", self.index - 1))
+        left = self._image(rec, "left", seq)
+        right = self._image(rec, "right", seq) if "right" in rec else None
+        stamp = int(rec.get("stamp_ns", time.monotonic_ns()))
         extra: dict = {}
         if "pose" in rec:
             extra["pose_ref"] = tuple(rec["pose"])
@@ -229,8 +381,10 @@ class ReplayGrabber(StereoGrabber):
             extra["pantilt"] = PanTiltState(seq=seq, stamp_ns=int(rec.get("pantilt_stamp_ns",
                                                                           stamp)),
                                             pan=rec["pan"], tilt=rec["tilt"])
-        if "depth" in rec and (self.folder / rec["depth"]).exists():
-            depth = np.load(self.folder / rec["depth"])
+        # depth is optional (ground truth) unless it is all that stands in for the matching
+        needs_depth = (right is None or self.use_recorded) and "disparity" not in rec
+        if "depth" in rec and (needs_depth or (self.folder / rec["depth"]).exists()):
+            depth = self._array(rec, "depth", seq)
             if right is None or self.use_recorded:
                 extra["depth"] = depth
             else:
@@ -238,8 +392,7 @@ class ReplayGrabber(StereoGrabber):
         if self.use_recorded or right is None:
             disp = None
             if "disparity" in rec:
-                disp = decode_disparity(cv2.imread(str(self.folder / rec["disparity"]),
-                                                   cv2.IMREAD_UNCHANGED))
+                disp = decode_disparity(self._image(rec, "disparity", seq))
             if disp is None and "depth" not in extra:
                 raise ValueError(f"stereo replay: frame {seq} has no right image and no "
                                  "recorded disparity or depth")
