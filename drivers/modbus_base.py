@@ -224,7 +224,8 @@ class ModbusBaseConfig:
 
 
 class ModbusBaseError(Exception):
-    """The base could not be opened or a request was refused before sending."""
+    """The base could not be opened, a request was refused before sending, or an answered
+    request left the driver in a state it cannot read from (an internal fault)."""
 
 
 class ModbusBaseConfigError(ModbusBaseError, ValueError):
@@ -275,7 +276,8 @@ class ModbusBase:
         self._next_connect = 0.0
         # (sent, received) monotonic ns of the last transaction, as the trace hook saw them
         self._wire: list[int | None] = [None, None]
-        self.last_window_ns: tuple[int, int] | None = None   # of the last good transaction
+        # (sent, received) of the last answered transaction; read() clears it per request
+        self.last_window_ns: tuple[int, int] | None = None
 
     # -- connection ---------------------------------------------------------------------
     def _make_client(self) -> Any:
@@ -429,6 +431,7 @@ class ModbusBase:
         windows: dict[str, tuple[int, int]] = {}
         for table, start, count in regmap.read_blocks():
             fn = "read_input_registers" if table == "input" else "read_holding_registers"
+            self.last_window_ns = None      # this request's window, never an earlier one's
             rr = self._request(fn, start, count=count)
             if rr is None:
                 return None
@@ -436,7 +439,11 @@ class ModbusBase:
                 self.errors.framing += 1
                 return None
             blocks[table] = (start, list(rr.registers))
-            assert self.last_window_ns is not None        # set by every answered request
+            # every answered request sets its window; a reply without one cannot be stamped
+            # (a real check: an assert would vanish under python -O and fail later, unclear)
+            if self.last_window_ns is None:
+                raise ModbusBaseError(f"{self.config.url}: {fn} {start}+{count} answered but "
+                                      "left no request/reply window to stamp the ticks with")
             windows[table] = self.last_window_ns
         # The counters were sampled while the tick block's request was at the controller.  A
         # map that puts right_ticks in another table (block) than left_ticks gets the left

@@ -5,6 +5,9 @@ on a fake clock for maps whose items span two blocks."""
 from __future__ import annotations
 
 import statistics
+import subprocess
+import sys
+import textwrap
 import time
 
 import pytest
@@ -13,6 +16,7 @@ from cgamap.drivers.messages import WheelTicks
 from cgamap.drivers.modbus_base import (
     ModbusBase,
     ModbusBaseConfig,
+    ModbusBaseError,
     RegisterField,
     RegisterMap,
     rtu_wire_skew_ns,
@@ -168,3 +172,57 @@ def test_wheel_ticks_json_has_the_uncertainty():
     d = WheelTicks(seq=1, stamp_ns=5, left=1, right=2, stamp_uncertainty_ns=7).to_json()
     assert d["stamp_uncertainty_ns"] == 7 and d["stamp_ns"] == 5 and d["left"] == 1
     assert WheelTicks(seq=1, stamp_ns=5, left=1, right=2).stamp_uncertainty_ns == 0
+
+
+# -- an answered request that left no window --------------------------------------------------
+
+def _windowless(drv: ModbusBase, client: TimedClient):
+    """A ``_request`` that answers (through the client) but sets no stamp window: what a
+    broken override or a future path that forgets the window would do."""
+    def request(fn, *args, **kw):
+        return getattr(client, fn)(*args, device_id=drv.device_id, **kw)
+    return request
+
+
+def test_answer_without_a_window_is_a_driver_error_not_an_assert(clock, monkeypatch):
+    client = TimedClient(clock, before=1 * MS, after=1 * MS)
+    drv = ModbusBase(ModbusBaseConfig(url="tcp://fake:1"), client=client).open()
+    assert drv.read() is not None and drv.last_window_ns is not None   # a good read first
+    monkeypatch.setattr(drv, "_request", _windowless(drv, client))
+    # the previous read's window is still there: it must not stamp this one
+    with pytest.raises(ModbusBaseError, match=r"tcp://fake:1: read_input_registers 0\+9 "
+                                               r"answered but left no request/reply window"):
+        drv.read()
+    monkeypatch.undo()
+    assert drv.read() is not None                 # the real path stamps again
+
+
+def test_answer_without_a_window_raises_under_python_O():
+    code = textwrap.dedent("""
+        from cgamap.drivers.modbus_base import ModbusBase, ModbusBaseConfig, ModbusBaseError
+        class R:
+            registers = [0] * 9
+            @staticmethod
+            def isError():
+                return False
+        drv = ModbusBase(ModbusBaseConfig(url="tcp://fake:1"), client=object())
+        drv._request = lambda *a, **kw: R
+        try:
+            drv.read()
+        except ModbusBaseError as exc:
+            print("ModbusBaseError", exc)
+    """)
+    r = subprocess.run([sys.executable, "-O", "-c", code], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("ModbusBaseError tcp://fake:1: read_input_registers"), r.stdout
+
+
+def test_trace_hook_that_never_fires_falls_back_to_the_call(clock):
+    """A client that takes the hook but never calls it: stamped around the call, no error."""
+    client = TimedClient(clock, before=3 * MS, after=3 * MS)
+    drv = ModbusBase(ModbusBaseConfig(url="tcp://fake:1"), client=client).open()
+    t0 = clock.ns
+    msg = drv.read()
+    assert msg is not None and drv.last_window_ns == (t0, clock.ns)
+    assert msg.stamp_ns == client.sampled["input"] and msg.stamp_uncertainty_ns == 3 * MS
