@@ -88,7 +88,27 @@ def _parse_record(raw: bytes, lineno: int, path: Path) -> dict:
     for key in FILE_FIELDS:
         if key in rec and not isinstance(rec[key], str):
             raise RecordingIndexError(path, lineno, f'"{key}" is not a file path')
+    # the fields replay reads, checked here so a bad one is named with its line, not a
+    # KeyError or TypeError in the middle of a replay
+    for key in ("seq", "stamp_ns", "pantilt_stamp_ns"):
+        if key in rec and not _is_int(rec[key]):
+            raise RecordingIndexError(path, lineno, f'"{key}" is not a whole number')
+    if "pose" in rec and not (isinstance(rec["pose"], list) and len(rec["pose"]) == 3
+                              and all(_is_number(v) for v in rec["pose"])):
+        raise RecordingIndexError(path, lineno, '"pose" is not [x, y, theta]')
+    if ("pan" in rec) != ("tilt" in rec) or not all(_is_number(rec[k]) for k in ("pan", "tilt")
+                                                    if k in rec):
+        raise RecordingIndexError(path, lineno, '"pan" and "tilt" must be numbers, both or '
+                                  'neither')
     return rec
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 def _is_json(raw: bytes) -> bool:

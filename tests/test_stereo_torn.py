@@ -125,6 +125,11 @@ def test_only_a_torn_line_is_no_frames(rec):
     (b'{"seq": 1, "left": 7}', '"left"'),
     (b'{"seq": 1, "left": "left/000001.png", "right": null}', '"right"'),
     (b'{"seq": 1, "left": "\xff"}', "UTF-8"),
+    (b'{"seq": "1", "left": "left/000001.png"}', '"seq"'),
+    (b'{"stamp_ns": 1.5, "left": "left/000001.png"}', '"stamp_ns"'),
+    (b'{"left": "left/000001.png", "pose": [1, 2]}', '"pose"'),
+    (b'{"left": "left/000001.png", "pan": 0.1}', '"pan" and "tilt"'),
+    (b'{"left": "left/000001.png", "pan": 0.1, "tilt": "up"}', '"pan" and "tilt"'),
 ])
 def test_damaged_middle_line_is_an_error_naming_the_line(rec, bad, problem):
     lines = index(rec).splitlines(keepends=True)
