@@ -11,6 +11,7 @@ everything interpolated at it (odometry at a scan's stamp).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 
@@ -58,4 +59,34 @@ class DeviceClock:
         return device * self.unit_ns + self._min[0][1]
 
 
-__all__ = ["DeviceClock"]
+class WrappingCounter:
+    """Unwraps a ``bits``-bit device counter that advances about once per ``tick_ns`` of host
+    time (a laser's sweep counter): of the counts congruent to the new value, the one nearest
+    to what the host time since the previous value predicts.  Gaps of any length unwrap right
+    as long as the host-time guess is off by less than half a wrap (for an 8-bit sweep counter
+    at 75 Hz: 1.7 s of arrival jitter or rate error), and the count never runs backwards.
+    """
+
+    def __init__(self, bits: int, tick_ns: int) -> None:
+        self.modulus, self.tick_ns = 1 << int(bits), int(tick_ns)
+        self._last: tuple[int, int] | None = None  # (count, arrival ns)
+
+    def reset(self) -> None:
+        self._last = None
+
+    def unwrap(self, value: int, arrival_ns: int) -> int:
+        """The count of ``value`` (taken mod 2**bits) that arrived at host ns ``arrival_ns``."""
+        value, arrival_ns = int(value) % self.modulus, int(arrival_ns)
+        if self._last is None:
+            count = value
+        else:
+            last, last_ns = self._last
+            step = (value - last) % self.modulus
+            expected = (arrival_ns - last_ns) / self.tick_ns
+            count = last + step + self.modulus * max(0, math.floor(
+                (expected - step) / self.modulus + 0.5))
+        self._last = (count, arrival_ns)
+        return count
+
+
+__all__ = ["DeviceClock", "WrappingCounter"]

@@ -17,17 +17,30 @@ the top of the range (within 8 of the mask, e.g. 8183-8191 for 13 bits) and dazz
 1° the LMS may send interlaced partial scans (count word bits 11-12 give the offset index
 0.25° · k); the :class:`ScanAssembler` interleaves a complete set into one full scan and
 drops (and counts) incomplete sets.
+
+Stamps: a scan's ``stamp_ns`` is the best host-time estimate of the instant its (last) sweep
+ended, which is when the LMS starts sending it: the arrival of the telegram's first byte (STX),
+never later than the last byte's arrival minus the wire time of the bytes after the first
+(10 bits a byte at the session baud, on a real serial line: a pty moves bytes at no rate at
+all).  With real-time indices on, ``device_stamp`` is the sweep counter unwrapped (one count a
+sweep at 75 Hz; the wire byte is its low 8 bits) and the stamp goes through a
+:class:`~.device_clock.DeviceClock` on that count, so a scan the host read late keeps the
+instant it was measured.  The clock and the counter start afresh on every (re)connect.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
+import stat
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .device_clock import DeviceClock, WrappingCounter
 from .laser import DeviceError, LaserDriver
 from .messages import ErrorCounters, LaserScan
 from .transport import Transport, parse_device_url
@@ -43,6 +56,13 @@ BAUD_PROBE_ORDER = (9600, 19200, 38400, 500000)
 BAUD_CODES = {38400: 0x40, 19200: 0x41, 9600: 0x42, 500000: 0x48}
 PASSWORD = b"SICK_LMS"
 SWEEP_HZ = 75.0  # native mirror rate (one 1° sweep)
+SWEEP_NS = round(1e9 / SWEEP_HZ)  # host ns per count of the real-time index
+# The sweep rate is held by the mirror's motor control, not by a quartz clock, so counts
+# times SWEEP_NS drift against the host clock by the motor's rate error; the DeviceClock's
+# least offset is taken over a short window (2 s) so that a rate error e costs at most
+# 2 s * e (2 ms at 1e-3), while at 38400 baud (5-10 telegrams/s) the window still holds
+# several telegrams, one of which came straight through.
+CLOCK_WINDOW_SWEEPS = int(2.0 * SWEEP_HZ)
 
 # measuring mode -> (range mask, dazzle bit or 0, reflector bits mask and shift)
 _MODE_MASKS = {
@@ -113,11 +133,33 @@ def frame(payload: bytes, address: int = 0x00) -> bytes:
 # -- receive side ---------------------------------------------------------------------------
 @dataclass
 class Event:
-    """What the parser found: kind "ack", "nak" or "frame" (payload set)."""
+    """What the parser found: kind "ack", "nak" or "frame" (payload set).
+
+    ``stamp_ns``: arrival (host monotonic ns) of the chunk that completed it; ``first_ns``:
+    of the chunk that held its first byte (None: same as ``stamp_ns``); ``size``: its bytes
+    on the wire (STX through CRC).
+    """
 
     kind: str
     payload: bytes = b""
     stamp_ns: int = 0
+    first_ns: int | None = None
+    size: int = 0
+
+
+def wire_ns(nbytes: int, baud: int) -> int:
+    """Nanoseconds ``nbytes`` take on an 8N1 serial line (10 bits a byte)."""
+    return nbytes * 10_000_000_000 // baud
+
+
+def telegram_start_ns(ev: Event, baud: int | None = None) -> int:
+    """Best host-time estimate of when ``ev``'s first byte arrived: the arrival of the chunk
+    that held it, and with ``baud`` (a real line's rate) never later than the last byte's
+    arrival minus the wire time of the bytes after the first."""
+    first = ev.stamp_ns if ev.first_ns is None else ev.first_ns
+    if baud and ev.size > 1:
+        first = min(first, ev.stamp_ns - wire_ns(ev.size - 1, baud))
+    return first
 
 
 class FrameParser:
@@ -127,15 +169,24 @@ class FrameParser:
         self.errors = errors if errors is not None else ErrorCounters()
         self.buf = bytearray()
         self._sync = bytes([STX, address])
+        # chunks with bytes still in buf: (stream offset just past the chunk, its stamp);
+        # buf[0] is at stream offset _base
+        self._chunks: deque[tuple[int, int]] = deque()
+        self._base = 0
 
     def reset(self) -> None:
         self.buf.clear()
+        self._chunks.clear()
+        self._base = 0
 
     def feed(self, data: bytes, stamp_ns: int | None = None) -> list[Event]:
-        """Add bytes; return the events completed by them, in order."""
+        """Add bytes that arrived at ``stamp_ns`` (default: now); return the events completed
+        by them, in order."""
         buf = self.buf
         buf += data
         stamp = time.monotonic_ns() if stamp_ns is None else stamp_ns
+        if data:
+            self._chunks.append((self._base + len(buf), stamp))
         out: list[Event] = []
         while buf:
             i = buf.find(self._sync)
@@ -158,9 +209,16 @@ class FrameParser:
                 self.errors.checksum += 1
                 self._skip(1, out, stamp, count=False)
                 continue
-            out.append(Event("frame", bytes(buf[4:4 + n]), stamp))
-            del buf[:6 + n]
+            out.append(Event("frame", bytes(buf[4:4 + n]), stamp, self._chunks[0][1], 6 + n))
+            self._drop(6 + n)
         return out
+
+    def _drop(self, n: int) -> None:
+        """Delete n leading bytes of buf and the chunks no byte of buf is from any more."""
+        del self.buf[:n]
+        self._base += n
+        while self._chunks and self._chunks[0][0] <= self._base:
+            self._chunks.popleft()
 
     def _skip(self, n: int, out: list[Event], stamp: int, count: bool = True) -> None:
         """Drop n leading bytes; lone ACK/NAK bytes become events, others count as framing."""
@@ -172,7 +230,7 @@ class FrameParser:
                     out.append(Event("ack" if b == ACK else "nak", b"", stamp))
         if count:
             self.errors.framing += n - acks
-        del self.buf[:n]
+        self._drop(n)
 
 
 # -- scans ----------------------------------------------------------------------------------
@@ -185,9 +243,10 @@ class B0Scan:
     unit: float                   # metres per count
     range_max: float              # metres at the top of the range mask
     status: int
-    rt_index: int | None = None
+    rt_index: int | None = None   # the real-time index byte as sent
     reflect: np.ndarray | None = None
-    stamp_ns: int = 0
+    stamp_ns: int = 0             # when its (last) sweep ended, host monotonic ns
+    sweep: int | None = None      # rt_index unwrapped (the driver's sweep count)
 
 
 def decode_b0(payload: bytes, measuring_mode: int = 0, stamp_ns: int = 0) -> B0Scan:
@@ -279,7 +338,8 @@ class ScanAssembler:
             angle_min=-math.radians(self.angle / 2.0),
             angle_increment=math.radians(self.resolution),
             ranges=ranges, range_min=0.0, range_max=last.range_max,
-            scan_time=sweeps / SWEEP_HZ, device_stamp=last.rt_index,
+            scan_time=sweeps / SWEEP_HZ,
+            device_stamp=last.rt_index if last.sweep is None else last.sweep,
             intensities=None, frame="laser")
 
 
@@ -304,6 +364,8 @@ class Lms2xxDriver(LaserDriver):
     ``units`` ("cm"/"mm"), ``measuring_mode`` and ``realtime_indices`` (availability flag
     0x02: a one-byte scan counter in each B0, given as ``device_stamp``) the config block;
     None keeps the device's setting.  ``restore_baud`` returns the LMS to 9600 on close.
+    ``wire_time``: bound scan stamps by the wire time at the session baud (see the module
+    docstring); None = only on a serial port that is not a pseudo-terminal.
     A reconnect inside :meth:`read_scan` (baud probing, init) may take up to about 2 s
     beyond the call's timeout.
     """
@@ -316,7 +378,7 @@ class Lms2xxDriver(LaserDriver):
                  units: str | None = "cm", measuring_mode: int | None = None,
                  realtime_indices: bool | None = None, restore_baud: bool = True,
                  baud_switch_delay: float = 0.05, probe_timeout: float = 0.25,
-                 **kw) -> None:
+                 wire_time: bool | None = None, **kw) -> None:
         super().__init__(device, timeout, **kw)
         if session_baud is None:
             session_baud = parse_device_url(self.url).baud or 38400
@@ -341,6 +403,12 @@ class Lms2xxDriver(LaserDriver):
         self.status_info: Lms2xxStatus | None = None
         self._pending: list[Event] = []
         self.streaming = False
+        self.wire_time = wire_time
+        self._wire_real = False                  # wire_time resolved for the open transport
+        self.sweeps = WrappingCounter(8, SWEEP_NS)
+        self.clock = DeviceClock(unit_ns=SWEEP_NS, window=CLOCK_WINDOW_SWEEPS)
+        # the last scan's last telegram: arrival of its last byte (what stamp_ns used to be)
+        self.arrival_ns: int | None = None
 
     # -- low level ---------------------------------------------------------------------------
     def _events(self, timeout: float) -> list[Event]:
@@ -469,7 +537,7 @@ class Lms2xxDriver(LaserDriver):
     def request_scan(self, timeout: float = 2.0) -> LaserScan | None:
         """One scan on request (``30 01``), outside continuous mode."""
         r = self.transact(b"\x30\x01", timeout)
-        return self._scan_from(Event("frame", r, time.monotonic_ns()))
+        return self._scan_from(Event("frame", r, time.monotonic_ns(), size=len(r) + 6))
 
     def reset(self, timeout: float = 60.0) -> None:
         """Reset (``10``): await ``91`` and the ``90`` power-on telegram, then re-initialise."""
@@ -487,6 +555,10 @@ class Lms2xxDriver(LaserDriver):
     def _start(self) -> None:
         self._flush()
         self.streaming = False
+        self.clock.reset()       # a reconnected LMS may have been power-cycled: new counter
+        self.sweeps.reset()
+        self._wire_real = self.wire_time if self.wire_time is not None \
+            else not _is_pty(self.transport)
         self.detect_baud()
         if self.device_baud != self.session_baud:
             self.set_baud(self.session_baud)
@@ -523,15 +595,23 @@ class Lms2xxDriver(LaserDriver):
         p = ev.payload
         if p[0] != 0xB0:
             return None
+        baud = self.transport.baud if self._wire_real and self.transport is not None else None
+        start = telegram_start_ns(ev, baud)
         try:
-            part = decode_b0(p, self.measuring_mode, ev.stamp_ns)
+            part = decode_b0(p, self.measuring_mode, start)
         except FrameError as exc:
             self.errors.framing += 1
             log.debug("%s: %s", self.url, exc)
             return None
         if part.status & 0x07:
             self.errors.device += 1
-        return self.assembler.add(part)
+        if part.rt_index is not None:
+            part.sweep = self.sweeps.unwrap(part.rt_index, start)
+            part.stamp_ns = self.clock.stamp(part.sweep, start)
+        scan = self.assembler.add(part)
+        if scan is not None:
+            self.arrival_ns = ev.stamp_ns
+        return scan
 
     def _receive_scan(self, timeout: float) -> LaserScan | None:
         deadline = time.monotonic() + timeout
@@ -548,7 +628,21 @@ class Lms2xxDriver(LaserDriver):
                 return None
 
 
+def _is_pty(transport: Transport | None) -> bool:
+    """Whether ``transport`` is a serial port on a pseudo-terminal (Unix98 pty slaves have
+    major numbers 136-143 on Linux), where bytes take no wire time."""
+    tr = getattr(transport, "inner", transport)  # through a SpyTransport
+    path = getattr(tr, "path", None)
+    if not path:
+        return False
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return stat.S_ISCHR(st.st_mode) and 136 <= os.major(st.st_rdev) <= 143
+
+
 __all__ = [
     "Lms2xxDriver", "Lms2xxStatus", "FrameParser", "FrameError", "ScanAssembler", "B0Scan",
-    "Event", "crc16_sick", "frame", "decode_b0", "variant_count",
+    "Event", "crc16_sick", "frame", "decode_b0", "variant_count", "telegram_start_ns", "wire_ns",
 ]

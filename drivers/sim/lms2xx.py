@@ -8,20 +8,29 @@ side is not mirrored on the other.  Behaviour (reference lasers.md §1):
   with status 0x10; a bad CRC gets the NAK byte 0x15; an unknown command the 0x92 telegram;
 - while the host's line rate (read from the pty's termios) differs from the twin's, input is
   discarded and output is garbled, so baud detection works as on a real line;
-- ``20 24`` streams ``B0`` scans ray-cast from the world along its trajectory, paced by the
-  75 Hz mirror and the wire time at the current baud (``time_scale`` speeds both up for tests);
-  0.25° (and 0.5° with ``interlace_half``) is sent as interlaced partial scans;
+- the mirror sweeps at 75 Hz of host time (``time_scale`` speeds it and the line up for
+  tests), counting sweeps from ``first_sweep``; ``20 24`` streams ``B0`` scans ray-cast from
+  the world along its trajectory: whenever the line is free, the latest sweep (or pair of
+  sweeps for a 361-value scan) not yet sent, so at low baud sweeps are skipped and the
+  real-time index (the sweep count's low byte) jumps; 0.25° (and 0.5° with ``interlace_half``)
+  is sent as interlaced partial scans, one sweep each, the partials in turn;
+- the line is busy for the wire time of what was written (10 bits a byte at the current
+  baud); with ``pace_output`` the bytes also come out at that rate, in ~2 ms chunks (a pty
+  would otherwise deliver a whole telegram at once), so a host sees a telegram's last byte
+  its wire time after the first, as on a real line;
 - fault injection on demand: byte errors at ``fault_rate`` per byte, truncated telegrams,
   stalls, unplug (pty closed, link removed) and replug (a fresh pty behind the same link; the
   device comes back powered up afresh, at 9600 baud).
 
 ``sent`` records every streamed scan telegram's value bytes and whether it left intact, so a
-test can check that nothing corrupted was delivered.
+test can check that nothing corrupted was delivered; ``measured`` (same order) its last sweep's
+count and the host monotonic ns at which that sweep ended, the instant a driver's stamp aims at.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import logging
 import os
 import tempfile
@@ -41,6 +50,8 @@ _UNIT = {0: 0.01, 1: 0.001, 2: 0.1}
 _BAUDS = {0x40: 38400, 0x41: 19200, 0x42: 9600, 0x48: 500000}
 _VARIANTS = {(180, 100), (180, 50), (100, 100), (100, 50), (100, 25)}
 STATUS_OK = 0x10
+SWEEP_HZ = 75.0
+PACE_CHUNK_S = 0.002   # with pace_output: bytes are written in chunks of about this wire time
 
 
 def sick_crc(data: bytes) -> int:
@@ -111,11 +122,18 @@ class Lms2xxTwin(ScanTwin):
     def __init__(self, world: str | World = "corridor", *, link: str | None = None,
                  seed: int = 0, fault_rate: float = 0.0, time_scale: float = 1.0,
                  noise: NoiseModel | None = None, interlace_half: bool = False,
-                 type_string: str = "LMS291-S05") -> None:
+                 type_string: str = "LMS291-S05", pace_output: bool = False,
+                 first_sweep: int = 0) -> None:
         super().__init__(world, seed=seed, fault_rate=fault_rate, time_scale=time_scale,
                          noise=noise)
         self.interlace_half = interlace_half
         self.type_string = type_string
+        self.pace_output = pace_output
+        self.first_sweep = int(first_sweep)
+        # per streamed scan telegram (as ``sent``): (sweep count, host ns the sweep ended)
+        self.measured: collections.deque[tuple[int, int]] = collections.deque(
+            maxlen=self.sent.maxlen)
+        self._outq: collections.deque[tuple[float, bytes]] = collections.deque()  # paced
         self._own_dir = None
         if link is None:
             self._own_dir = tempfile.mkdtemp(prefix="cgamap-lms2xx-")
@@ -135,10 +153,16 @@ class Lms2xxTwin(ScanTwin):
         self.angle, self.res = 180, 50
         self.config = default_config()
         self.t_sim = 0.0
-        self.rt_counter = 0
         self.partial = 0
-        self._next_due = 0.0
+        self._mirror_t0 = time.monotonic()   # sweep first_sweep + i ends at t0 + (i + 1) P
+        self.sweep = self._latest_sweep()    # the last sweep sent (or skipped)
+        self._line_free = 0.0                # when the line is done with what was written
         self._frames = _HostFrames()
+
+    @property
+    def rt_counter(self) -> int:
+        """The last sent sweep's count (its low byte is the real-time index)."""
+        return self.sweep
 
     @property
     def streaming(self) -> bool:
@@ -153,6 +177,7 @@ class Lms2xxTwin(ScanTwin):
     def _replug(self) -> None:
         """A fresh pty behind the same link; the device has been power-cycled (9600 baud)."""
         self.pty.reconnect()
+        self._outq.clear()
         self._power_on()
         self.stats["replugs"] += 1
 
@@ -177,17 +202,20 @@ class Lms2xxTwin(ScanTwin):
                 time.sleep(min(0.01, self._stall_until - now))
                 if time.monotonic() >= self._stall_until:
                     self.pty.flush_input()
-                    self._next_due = time.monotonic()
                 continue
             wait = 0.02
             if self.streaming:
-                wait = max(0.0, min(wait, self._next_due - now))
+                wait = min(wait, self._stream_due() - now)
+            if self._outq:
+                wait = min(wait, self._outq[0][0] - now)
             try:
-                data = self.pty.read(4096, wait)
+                data = self.pty.read(4096, max(0.0, wait))
                 if data:
                     self._on_input(data)
-                if self.streaming and time.monotonic() >= self._next_due:
+                self._drain()
+                if self.streaming and time.monotonic() >= self._stream_due():
                     self._stream_one()
+                    self._drain()
             except PtyClosed:
                 time.sleep(0.01)
             except Exception:  # keep the device alive whatever a test throws at it
@@ -212,8 +240,26 @@ class Lms2xxTwin(ScanTwin):
                 data = arr.tobytes()
                 intact = False
                 self.stats["corrupted"] += 1
-        self.pty.write(data)
+        now = time.monotonic()
+        start = max(now, self._line_free)
+        byte_s = 10.0 / self.baud / self.time_scale
+        self._line_free = start + len(data) * byte_s
+        if not self.pace_output:
+            self.pty.write(data)
+            return intact
+        # each chunk leaves once its last byte would have been received
+        step = max(1, int(PACE_CHUNK_S / byte_s))
+        for i in range(0, len(data), step):
+            chunk = data[i:i + step]
+            self._outq.append((start + (i + len(chunk)) * byte_s, chunk))
+        self._drain()
         return intact
+
+    def _drain(self) -> None:
+        """Write the paced chunks that are due."""
+        now = time.monotonic()
+        while self._outq and self._outq[0][0] <= now:
+            self.pty.write(self._outq.popleft()[1])
 
     def _reply(self, payload: bytes) -> None:
         self._emit(bytes([0x06]) + telegram(payload + bytes([STATUS_OK])))
@@ -238,7 +284,7 @@ class Lms2xxTwin(ScanTwin):
             self._mode_switch(p)
         elif cmd == 0x30 and len(p) >= 2:
             self._emit(bytes([0x06]))
-            self._emit(telegram(self._scan_payload(full=True)))
+            self._emit(telegram(self._scan_payload(self._latest_sweep(), full=True)))
         elif cmd == 0x31:
             self._reply(self._status_payload())
         elif cmd == 0x32:
@@ -283,7 +329,7 @@ class Lms2xxTwin(ScanTwin):
         elif mode in (0x24, 0x25):
             self.installation = False
             if mode == 0x24 and not self.streaming:
-                self._next_due = time.monotonic()
+                self.sweep = max(self.sweep, self._latest_sweep())  # stream from the next
                 self.partial = 0
         else:
             ok = False
@@ -310,7 +356,40 @@ class Lms2xxTwin(ScanTwin):
             return 1
         return k
 
-    def _scan_payload(self, full: bool = False) -> bytes:
+    def _sweeps_per_telegram(self) -> int:
+        """1, or the sweeps a non-interlaced finer-than-1° scan is measured in (0.5°: two)."""
+        return 1 if self._interlace() > 1 else 100 // self.res
+
+    def _sweep_s(self) -> float:
+        return 1.0 / (SWEEP_HZ * self.time_scale)
+
+    def _sweep_end(self, j: int) -> float:
+        """Host monotonic s at which sweep ``j`` ended."""
+        return self._mirror_t0 + (j - self.first_sweep + 1) * self._sweep_s()
+
+    def _latest_sweep(self, now: float | None = None) -> int:
+        """The last sweep that has ended (first_sweep - 1 before the first one)."""
+        now = time.monotonic() if now is None else now
+        return self.first_sweep - 1 + int((now - self._mirror_t0) // self._sweep_s())
+
+    def _slot(self) -> tuple[int, int]:
+        """Which sweeps end a telegram: those j with j % m == r (the next partial's sweeps
+        when interlaced, the last of each group of sweeps otherwise)."""
+        k = self._interlace()
+        if k > 1:
+            return k, self.partial
+        s = self._sweeps_per_telegram()
+        return s, s - 1
+
+    def _stream_due(self) -> float:
+        """When the next scan telegram can go: its sweep has ended and the line is free."""
+        m, r = self._slot()
+        j = self.sweep + 1
+        j += (r - j) % m
+        return max(self._line_free, self._sweep_end(j))
+
+    def _scan_payload(self, j: int, full: bool = False) -> bytes:
+        """The ``B0`` payload of the scan that sweep ``j`` ended."""
         k = 1 if full else self._interlace()
         n_full = self.angle * 100 // self.res + 1
         p = self.partial if k > 1 else 0
@@ -321,7 +400,9 @@ class Lms2xxTwin(ScanTwin):
         mask = (1 << bits) - 1
         unit_code = self.config[6] if self.config[6] in _UNIT else 0
         unit = _UNIT[unit_code]
-        self.truth.append((self.rt_counter, self.t_sim, *self.world.trajectory(self.t_sim)))
+        # the simulated clock: sweep first_sweep ends at 1/75 s
+        self.t_sim = (j - self.first_sweep + 1) / SWEEP_HZ
+        self.truth.append((j, self.t_sim, *self.world.trajectory(self.t_sim)))
         r = self.world.scan(self.t_sim, angles, mask * unit, self.noise, self.rng)
         with np.errstate(invalid="ignore"):
             counts = np.where(np.isfinite(r), np.rint(r / unit), mask)
@@ -330,24 +411,24 @@ class Lms2xxTwin(ScanTwin):
         w = len(idx) | (p << 11) | (unit_code << 14)
         out = bytearray(b"\xB0") + w.to_bytes(2, "little") + counts.astype("<u2").tobytes()
         if self.config[4] & 0x02:  # availability flag: send real-time indices
-            out.append(self.rt_counter & 0xFF)
+            out.append(j & 0xFF)
         out.append(STATUS_OK)
-        # the simulated clock: one mirror sweep per 1/75 s
-        sweeps = 1 if k > 1 else 100 // self.res
-        self.t_sim += sweeps / 75.0
-        self.rt_counter += 1
-        if k > 1:
-            self.partial = (self.partial + 1) % k
         return bytes(out)
 
     def _stream_one(self) -> None:
-        payload = self._scan_payload()
+        """Send the latest ended sweep of the next telegram's slot (skipping older ones)."""
+        m, r = self._slot()
+        latest = self._latest_sweep()
+        j = latest - (latest - r) % m
+        if j <= self.sweep:
+            return
+        payload = self._scan_payload(j)
+        self.sweep = j
+        if self._interlace() > 1:
+            self.partial = (self.partial + 1) % self._interlace()
         n = int.from_bytes(payload[1:3], "little") & 0x3FF
         data = telegram(payload)
-        sweeps = 1 if self._interlace() > 1 else 100 // self.res
-        period = max(sweeps / 75.0, len(data) * 10.0 / self.baud) / self.time_scale
-        now = time.monotonic()
-        self._next_due = max(self._next_due + period, now - 2 * period)
+        self.measured.append((j, int(self._sweep_end(j) * 1e9)))
         if self._take_truncate():
             data = data[:int(self.rng.integers(4, len(data) - 1))]
             self.stats["truncated"] += 1
@@ -365,7 +446,8 @@ def main(args: argparse.Namespace) -> int:
     SIGUSR1 unplugs the device for 2 s and plugs it back; SIGUSR2 stalls it for 2 s.
     """
     twin = Lms2xxTwin(getattr(args, "world", "corridor"), seed=getattr(args, "seed", 0),
-                      fault_rate=getattr(args, "fault_rate", 0.0))
+                      fault_rate=getattr(args, "fault_rate", 0.0),
+                      pace_output=bool(getattr(args, "pace_output", False)))
     return serve_until_signal(
         lambda: twin.start().path, twin.stop,
         banner=f"lms2xx twin in world {twin.world.name!r}; SIGUSR1 = unplug 2 s, "
