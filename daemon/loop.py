@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import bisect
 import collections
+import contextlib
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import fields, is_dataclass
 from typing import Any
 
@@ -88,6 +90,10 @@ class WheelOdometry:
 # (the fraction of scan points on map walls); a lost robot does not jump to such a pose
 RELOC_AMBIGUITY = 0.05
 RELOC_RIVALS = 4  # rivals reported with an answer
+
+
+class MapReplaced(RuntimeError):
+    """A finishing pass computed for a mapper that was replaced meanwhile (checkpoint load)."""
 
 
 class Mapper2D:
@@ -169,7 +175,7 @@ class Mapper2D:
     def apply_optimize(self, job: Any) -> dict:
         """Adopt a computed job; a mapper replaced meanwhile (checkpoint load) ignores it."""
         if job.source is not self.m:
-            raise RuntimeError("the map was replaced while optimising; nothing applied")
+            raise MapReplaced("the map was replaced while optimising; nothing applied")
         out = self.m.apply_finish(job)
         if self.m.count and self.m.last_odom is not None:  # not re-anchored since its scan
             self._pose = self.m.base_pose(self.m.graph.poses[-1])
@@ -574,15 +580,32 @@ class MappingLoop:
     def optimizing(self) -> bool:
         return self._optimize_job is not None
 
-    def optimize(self) -> dict:
-        """The whole pass in the calling thread (a single-threaded user, tests)."""
-        job = self.optimize_begin()
+    def optimize(self, lock: contextlib.AbstractContextManager | None = None,
+                 stop: Callable[[], bool] | None = None,
+                 stopping: str = "stop requested; nothing applied") -> dict:
+        """The whole pass, for every caller: snapshot and apply under ``lock``, the
+        computation outside it, so a map thread sharing the lock (the daemon's) keeps
+        mapping meanwhile; no lock for a single-threaded caller (tests).  ``stop()`` true
+        abandons the computation and applies nothing (ValueError ``stopping``).  ValueError
+        also for a pass already running, no mapper, and a map replaced meanwhile; any
+        exception of the computation forgets the job and propagates."""
+        lock = contextlib.nullcontext() if lock is None else lock
+        with lock:
+            job = self.optimize_begin()
         try:
-            job.run()
+            job.run(stop=stop)
         except BaseException:
-            self.optimize_abort(job)
+            with lock:
+                self.optimize_abort(job)
             raise
-        return self.optimize_end(job)
+        with lock:
+            if stop is not None and stop():
+                self.optimize_abort(job)
+                raise ValueError(stopping)
+            try:
+                return self.optimize_end(job)
+            except MapReplaced as exc:  # a checkpoint was loaded while the job ran
+                raise ValueError(str(exc)) from None
 
     def set_pose(self, pose, reason: str = "set-pose") -> None:
         self.pose = np.asarray(pose, dtype=float)

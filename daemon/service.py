@@ -317,28 +317,15 @@ class Daemon:
             return self.checkpoint("request")
 
     def cmd_optimize(self, req: dict) -> dict:
-        """The finishing pass over the kept nodes (MappingLoop.optimize_begin): computed here,
+        """The finishing pass over the kept nodes (MappingLoop.optimize): computed here,
         in the query thread, on a snapshot while the main thread keeps mapping, then applied
         under the lock between two scans.  A second request while one runs is an error."""
         return {"class": "optimize", **self.optimize()}
 
     def optimize(self) -> dict:
-        with self.lock:
-            job = self.loop.optimize_begin()  # ValueError: already running
-        try:
-            job.run(stop=self.stop_event.is_set)
-        except BaseException:
-            with self.lock:
-                self.loop.optimize_abort(job)
-            raise
-        with self.lock:
-            if self.stop_event.is_set():
-                self.loop.optimize_abort(job)
-                raise ValueError("the daemon is stopping; nothing applied")
-            try:
-                return self.loop.optimize_end(job)
-            except RuntimeError as exc:  # the map was replaced meanwhile
-                raise ValueError(str(exc)) from None
+        """One pass (MappingLoop.optimize) under the daemon's lock, abandoned on shutdown."""
+        return self.loop.optimize(self.lock, self.stop_event.is_set,
+                                  stopping="the daemon is stopping; nothing applied")
 
     def _optimize_in_background(self) -> None:
         """The periodic pass (mapping.optimize_every_s) in its own thread; skipped while a

@@ -347,3 +347,86 @@ def test_sighup_changes_the_optimize_period(tmp_path):
     d.reload()
     assert d.cfg["mapping"]["optimize_every_s"] == 3600.0
 
+
+
+class Caller:
+    """One of the pass's two callers over a fed map: the loop's own (synchronous, a stop
+    predicate of its own) or the daemon's request (its lock, its shutdown event); ``reply``
+    answers as the daemon does, the figures or ``optimize: <error>``."""
+
+    def __init__(self, kind: str, tmp_path):
+        self.kind = kind
+        if kind == "daemon":
+            from cgamap.daemon.service import Daemon
+
+            self.d = Daemon(cfg(optimize_every_s=0.0), state_dir=str(tmp_path / "state"),
+                            socket_path=str(tmp_path / "d.sock"))
+            self.loop, self.stopping = self.d.loop, self.d.stop_event
+        else:
+            self.loop, self.stopping = MappingLoop(cfg()), threading.Event()
+        Run("room", 1, 0).feed(self.loop, 30)
+
+    def reply(self) -> dict:
+        if self.kind == "daemon":
+            return self.d.command({"cmd": "optimize"})
+        try:
+            return {"class": "optimize", **self.loop.optimize(stop=self.stopping.is_set)}
+        except (ValueError, RuntimeError) as exc:
+            return {"class": "error", "error": f"optimize: {exc}"}
+
+    def looks(self) -> tuple:
+        """What an applied pass changes: map, version, trajectory, the pass count."""
+        lp = self.loop
+        return (lp.segments().copy(), lp.map_version, np.array(lp.trajectory),
+                lp.counts["optimized"], lp.last_optimize)
+
+
+STOPPED = {"loop": "optimize: stop requested; nothing applied",
+           "daemon": "optimize: the daemon is stopping; nothing applied"}
+
+
+@pytest.mark.parametrize("kind", ["loop", "daemon"])
+@pytest.mark.parametrize("fault", ["stop at start", "stop at end", "failure", "map replaced"])
+def test_a_stopped_failed_or_outdated_pass_applies_nothing(kind, fault, tmp_path, monkeypatch):
+    """Both callers drive one pass the same way: a stop requested while the job computes
+    (or once it has computed), an exception in the job, or a map replaced meanwhile leaves
+    the map as it was and the loop free for the next pass."""
+    from cgamap.mapping.slam2d import FinishJob
+
+    c = Caller(kind, tmp_path)
+    original, computed = FinishJob.run, []
+
+    def faulty(self, stop=None):
+        if fault == "stop at start":
+            c.stopping.set()
+        elif fault == "failure":
+            raise RuntimeError("boom")
+        elif fault == "map replaced":  # a checkpoint loaded while the job runs
+            c.loop.load_state(c.loop.state())
+        out = original(self, stop)
+        computed.append(len(out.edges))
+        if fault == "stop at end":
+            c.stopping.set()
+        return out
+
+    monkeypatch.setattr(FinishJob, "run", faulty)
+    before = c.looks()
+    got = c.reply()
+    assert got["class"] == "error", got
+    if fault.startswith("stop"):
+        assert got["error"] == STOPPED[kind]
+    elif fault == "failure":
+        assert got["error"].startswith("optimize: ") and got["error"].endswith("boom")
+    else:
+        assert got["error"] == "optimize: the map was replaced while optimising; nothing applied"
+    if fault == "stop at end":
+        assert computed[0] > 0  # a finished job with edges, held back by the stop
+    after = c.looks()
+    assert not c.loop.optimizing and not c.loop.status()["optimize"]["running"]
+    assert np.array_equal(after[0], before[0]) and after[1] == before[1]
+    assert np.array_equal(after[2], before[2]) and after[3:] == before[3:] == (0, None)
+    monkeypatch.undo()
+    c.stopping.clear()
+    again = c.reply()  # the next pass goes through
+    assert again["class"] == "optimize" and FIELDS <= set(again), again
+    assert again["edges"] > 0 or fault == "map replaced"  # a loaded map keeps no scans
