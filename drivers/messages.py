@@ -6,8 +6,12 @@ counter or clock where the protocol has one (SCIP timestamp, SICK scan counter),
 Where the device has a clock (Hokuyo SCIP), ``stamp_ns`` is the arrival time the message would
 have had on an idle host, mapped from ``device_stamp`` by :class:`.device_clock.DeviceClock`:
 a scan read late by a busy host keeps the instant it was taken (the odometry at that instant
-is what places it).  Where the device samples on request (a Modbus base's encoder counters),
-``stamp_ns`` is the midpoint of the request and its reply.
+is what places it).  A SICK LMS2xx scan's ``stamp_ns`` is when its (last) mirror sweep ended:
+the arrival of its telegram's first byte, on a real serial line no later than the last byte's
+arrival minus the wire time of the rest at the session baud; with real-time indices on,
+``device_stamp`` is the sweep count (the one-byte index unwrapped, 75 Hz) and the stamp goes
+through a :class:`.device_clock.DeviceClock` on it.  Where the device samples on request
+(a Modbus base's encoder counters), ``stamp_ns`` is the midpoint of the request and its reply.
 """
 
 from __future__ import annotations

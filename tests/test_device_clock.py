@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from cgamap.drivers.device_clock import DeviceClock
+from cgamap.drivers.device_clock import DeviceClock, WrappingCounter
 from cgamap.drivers.hokuyo import HokuyoDriver
 from cgamap.drivers.sim.hokuyo import HokuyoTwin
 
@@ -69,3 +69,21 @@ def test_hokuyo_scans_read_late_are_stamped_when_taken(tmp_path):
     stamps = np.array([s.stamp_ns for s in scans])
     assert np.all(np.diff(dev) == 25)  # UTM-30LX: a scan every 25 ms of device time
     assert np.abs(np.diff(stamps) - 25 * MS).max() < 3 * MS, np.diff(stamps) / MS
+
+
+def test_wrapping_counter_unwraps_drops_wraps_and_long_gaps():
+    """An 8-bit sweep counter at 75 Hz (wraps every 3.4 s) read with up to 0.5 s of jitter:
+    single steps, drops of a few counts, and silences of many wraps come out right."""
+    tick = 1_000_000_000 // 75
+    rng = np.random.default_rng(5)
+    counts = np.cumsum(rng.choice([1, 1, 1, 2, 7, 14], 3000)) + 250
+    counts[1500:] += 75 * 60                           # a minute of silence
+    counts[2500:] += 200                               # and a gap of 2.7 s
+    arrive = counts * tick + rng.uniform(0, 0.5e9, len(counts)).astype(np.int64)
+    arrive = np.maximum.accumulate(arrive)
+    unwrap = WrappingCounter(8, tick)
+    got = np.array([unwrap.unwrap(c % 256, a) for c, a in zip(counts, arrive, strict=True)])
+    assert np.array_equal(got - got[0], counts - counts[0])
+    assert unwrap.unwrap(got[-1] % 256, arrive[-1]) == got[-1]   # the same again: no step
+    unwrap.reset()
+    assert unwrap.unwrap(3, 0) == 3                              # afresh from the raw value
