@@ -89,7 +89,8 @@ def _counts(scan) -> bytes:
 
 
 def _measured(twin: Lms2xxTwin, scans: list) -> list[tuple[int, int]]:
-    """For each scan, the twin's (sweep count, end ns) of the telegram with its values."""
+    """For each scan, the twin's (sweep count, end ns) of the telegram with its values (once
+    the twin stopped: it records a telegram just after writing it)."""
     index = {v: i for i, (v, _) in enumerate(twin.sent)}
     measured = list(twin.measured)
     return [measured[index[_counts(s)]] for s in scans]
@@ -110,7 +111,7 @@ def test_paced_38400_line_stamps_the_sweep_not_the_last_byte(tmp_path):
             scans.append(drv.read_scan(3.0))
             arrivals.append(drv.arrival_ns)
         assert all(s is not None for s in scans)
-        ends = np.array([e for _, e in _measured(tw, scans)])
+    ends = np.array([e for _, e in _measured(tw, scans)])
     wire = wire_ns(6 + 3 + 2 * 181 + 1, 38400) / MS
     err = (np.array([s.stamp_ns for s in scans]) - ends) / MS
     lag = (np.array(arrivals) - ends) / MS
@@ -139,7 +140,7 @@ def test_scans_read_late_keep_their_sweep_instant(tmp_path):
             scans.append(drv.read_scan(2.0))
             arrivals.append(drv.arrival_ns)
         assert all(s is not None for s in scans)
-        measured = _measured(tw, scans)
+    measured = _measured(tw, scans)
     assert [s.device_stamp for s in scans] == [j for j, _ in measured]
     assert drv._wire_real is False                  # a pty: bytes take no wire time
     ends = np.array([e for _, e in measured])
@@ -167,7 +168,7 @@ def test_dropped_sweep_and_counter_wrap_are_stamped_right(tmp_path):
                 break
         scans += [drv.read_scan(2.0) for _ in range(10)]
         assert all(s is not None for s in scans)
-        measured = _measured(tw, scans)
+    measured = _measured(tw, scans)
     dev = np.array([s.device_stamp for s in scans])
     sweeps = np.array([j for j, _ in measured])
     assert np.all(dev % 256 == sweeps % 256) and len(set(sweeps - dev)) == 1
@@ -195,7 +196,7 @@ def test_reconnect_starts_the_sweep_clock_afresh(tmp_path):
         tw.replug()
         after = [drv.read_scan(5.0) for _ in range(40)]
         assert all(s is not None for s in before + after) and drv.errors.disconnects >= 1
-        measured = _measured(tw, after)
+    measured = _measured(tw, after)
     dev = [s.device_stamp for s in after]
     assert dev == [j for j, _ in measured]             # counted afresh from the new 0
     assert drv.clock.resets == 0                       # reset by the reconnect, not guessed
