@@ -48,6 +48,45 @@ class PoseGraph:
         e[:, 2] = wrap(e[:, 2])
         return e
 
+    def normal_equations(self, X: np.ndarray, robust_scale: float
+                         ) -> tuple[sp.csc_matrix, np.ndarray, float]:
+        """Gauss-Newton normal equations of the edges at poses ``X`` (n, 3): the sparse
+        (3n, 3n) information H, the gradient g (the step solves H dx = -g) and the weighted
+        chi^2; loop edges carry Cauchy weights of scale ``robust_scale``.  No node is held."""
+        n = len(X)
+        i, j = np.array(self.ei, int), np.array(self.ej, int)
+        Z, Om = np.array(self.z).reshape(-1, 3), np.array(self.info).reshape(-1, 3, 3)
+        e = relative(X[i], X[j]) - Z
+        e[:, 2] = wrap(e[:, 2])
+        m2 = np.einsum("ki,kij,kj->k", e, Om, e)
+        w = np.where(np.array(self.loop, bool), 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
+        c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
+        d = X[j, :2] - X[i, :2]
+        A = np.zeros((len(i), 3, 3))   # de/dx_i
+        B = np.zeros((len(i), 3, 3))   # de/dx_j
+        A[:, 0, 0], A[:, 0, 1] = -c, -s
+        A[:, 1, 0], A[:, 1, 1] = s, -c
+        A[:, 0, 2] = -s * d[:, 0] + c * d[:, 1]
+        A[:, 1, 2] = -c * d[:, 0] - s * d[:, 1]
+        A[:, 2, 2] = -1.0
+        B[:, 0, 0], B[:, 0, 1] = c, s
+        B[:, 1, 0], B[:, 1, 1] = -s, c
+        B[:, 2, 2] = 1.0
+        Wo = Om * w[:, None, None]
+        AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
+        rows, cols, vals = [], [], []
+        r3 = np.arange(3)
+        for bi, bj, M in [(i, i, AtW @ A), (i, j, AtW @ B), (j, i, BtW @ A), (j, j, BtW @ B)]:
+            rows.append((3 * bi[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
+            cols.append((3 * bj[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
+            vals.append(M.ravel())
+        H = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(3 * n,) * 2)
+        g = np.zeros(3 * n)
+        np.add.at(g, 3 * i[:, None] + r3, np.einsum("kij,kj->ki", AtW, e))
+        np.add.at(g, 3 * j[:, None] + r3, np.einsum("kij,kj->ki", BtW, e))
+        return H, g, float(np.sum(w * m2))
+
     def optimize(self, iterations: int = 10, robust_scale: float = 3.0,
                  fixed: int | list[int] = 0) -> dict:
         """Gauss-Newton over all poses (the ``fixed`` node or nodes held); updates ``poses``
@@ -56,54 +95,25 @@ class PoseGraph:
         if n < 2 or not self.ei:
             return {"iterations": 0, "chi2": 0.0}
         X = np.array(self.poses)
-        i, j = np.array(self.ei), np.array(self.ej)
-        Z, Om = np.array(self.z), np.array(self.info)
-        robust = np.array(self.loop)
+        hold = hold_nodes(fixed, n)
         chi2 = 0.0
         for it in range(iterations):
-            e = relative(X[i], X[j]) - Z
-            e[:, 2] = wrap(e[:, 2])
-            m2 = np.einsum("ki,kij,kj->k", e, Om, e)
             # graduated: the first passes trust every closure (a true one can disagree by
             # metres before the graph has moved), then the Cauchy weights sort out the rest
-            scale = robust_scale * (30.0 if it < 2 else 1.0)
-            w = np.where(robust, 1.0 / (1.0 + m2 / scale ** 2), 1.0)
-            chi2 = float(np.sum(w * m2))
-            c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
-            d = X[j, :2] - X[i, :2]
-            A = np.zeros((len(i), 3, 3))   # de/dx_i
-            B = np.zeros((len(i), 3, 3))   # de/dx_j
-            A[:, 0, 0], A[:, 0, 1] = -c, -s
-            A[:, 1, 0], A[:, 1, 1] = s, -c
-            A[:, 0, 2] = -s * d[:, 0] + c * d[:, 1]
-            A[:, 1, 2] = -c * d[:, 0] - s * d[:, 1]
-            A[:, 2, 2] = -1.0
-            B[:, 0, 0], B[:, 0, 1] = c, s
-            B[:, 1, 0], B[:, 1, 1] = -s, c
-            B[:, 2, 2] = 1.0
-            Wo = Om * w[:, None, None]
-            AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
-            blocks = [(i, i, AtW @ A), (i, j, AtW @ B), (j, i, BtW @ A), (j, j, BtW @ B)]
-            rows, cols, vals = [], [], []
-            r3 = np.arange(3)
-            for bi, bj, M in blocks:
-                rows.append((3 * bi[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
-                cols.append((3 * bj[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
-                vals.append(M.ravel())
-            # hold the fixed node(s) with a stiff prior
-            fx = np.atleast_1d(np.asarray(fixed, dtype=int))
-            rows.append((3 * fx[:, None] + r3).ravel())
-            cols.append((3 * fx[:, None] + r3).ravel())
-            vals.append(np.full(3 * len(fx), 1e9))
-            H = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
-                                                      np.concatenate(cols))), shape=(3 * n,) * 2)
-            g = np.zeros(3 * n)
-            np.add.at(g, 3 * i[:, None] + r3, np.einsum("kij,kj->ki", AtW, e))
-            np.add.at(g, 3 * j[:, None] + r3, np.einsum("kij,kj->ki", BtW, e))
-            dx = spsolve(H, -g).reshape(n, 3)
+            H, g, chi2 = self.normal_equations(X, robust_scale * (30.0 if it < 2 else 1.0))
+            dx = spsolve((H + hold).tocsc(), -g).reshape(n, 3)
             X = X + dx
             X[:, 2] = wrap(X[:, 2])
             if it >= 2 and np.max(np.abs(dx)) < 1e-5:
                 break
         self.poses = list(X)
         return {"iterations": it + 1, "chi2": chi2}
+
+
+def hold_nodes(fixed: int | list[int], n: int, size: int | None = None) -> sp.csc_matrix:
+    """A stiff prior holding the ``fixed`` node(s) of n poses, as a (size, size) diagonal
+    (size defaults to 3n; more variables may follow the poses)."""
+    fx = np.atleast_1d(np.asarray(fixed, dtype=int))
+    idx = (3 * fx[:, None] + np.arange(3)).ravel()
+    size = 3 * n if size is None else size
+    return sp.csc_matrix((np.full(len(idx), 1e9), (idx, idx)), shape=(size, size))
