@@ -362,8 +362,10 @@ class Lms2xxDriver(LaserDriver):
     ``session_baud`` is the rate used while streaming (default: the URL's ``baudrate``/``baud``,
     else 38400; 500000 needs RS-422).  ``angle``/``resolution`` select the variant,
     ``units`` ("cm"/"mm"), ``measuring_mode`` and ``realtime_indices`` (availability flag
-    0x02: a one-byte scan counter in each B0, given as ``device_stamp``) the config block;
-    None keeps the device's setting.  ``restore_baud`` returns the LMS to 9600 on close.
+    0x02: a one-byte sweep counter in each B0, unwrapped into ``device_stamp`` and the
+    stamps' :class:`~.device_clock.DeviceClock`) the config block; None keeps the device's
+    setting (with real-time indices on, the counter is used either way).  ``restore_baud``
+    returns the LMS to 9600 on close.
     ``wire_time``: bound scan stamps by the wire time at the session baud (see the module
     docstring); None = only on a serial port that is not a pseudo-terminal.
     A reconnect inside :meth:`read_scan` (baud probing, init) may take up to about 2 s
