@@ -6,6 +6,7 @@ import numpy as np
 from cgamap.cga import angle_diff
 
 from .odometry import compose_pose2d, relative
+from .scan_icp import IcpParams, icp, scan_points
 
 
 def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
@@ -138,4 +139,39 @@ def relations_error(stamps: np.ndarray, poses: np.ndarray, relations: np.ndarray
     er = np.degrees(np.abs(angle_diff(rel[:, 2], r[:, 4])))
     out.update({"trans_mean_m": float(et.mean()), "trans_median_m": float(np.median(et)),
                 "rot_mean_deg": float(er.mean()), "rot_median_deg": float(np.median(er))})
+    return out
+
+
+def icp_agreement(scans, trajectories: dict, guess: np.ndarray,
+                  params: IcpParams | None = None) -> dict:
+    """How well each trajectory's consecutive relative poses agree with raw-point ICP between
+    the same scans (:mod:`.scan_icp`, started from ``guess``'s relative poses): median and
+    RMS of the translation (m) and rotation (deg) differences per trajectory, and the ICP's own
+    consistency (each pair matched both ways, the two results composed; identity when the
+    matcher is precise).  A reference that is itself a SLAM output is not ground truth: this
+    tells whether the estimate or the reference sits closer to what the ranges say."""
+    pts = [scan_points(s.ranges, s.angle_min, s.angle_increment, params) for s in scans]
+    z, back = [], []
+    for k in range(1, len(scans)):
+        g = relative(guess[k - 1], guess[k])
+        f = icp(pts[k], pts[k - 1], g, params)
+        b = icp(pts[k - 1], pts[k], relative(g, np.zeros(3)), params)
+        z.append(f if f is not None else np.full(3, np.nan))
+        back.append(compose_pose2d(f, b) if f is not None and b is not None
+                    else np.full(3, np.nan))
+    Z = np.array(z).reshape(-1, 3)
+
+    def figures(d: np.ndarray) -> dict:
+        d = d[np.isfinite(d).all(axis=1)]
+        if not len(d):
+            return {"pairs": 0}
+        t, r = np.hypot(d[:, 0], d[:, 1]), np.degrees(np.abs(angle_diff(d[:, 2], 0.0)))
+        return {"pairs": int(len(d)), "trans_median_m": round(float(np.median(t)), 4),
+                "trans_rms_m": round(float(np.sqrt(np.mean(t ** 2))), 4),
+                "rot_median_deg": round(float(np.median(r)), 3),
+                "rot_rms_deg": round(float(np.sqrt(np.mean(r ** 2))), 3)}
+
+    out = {name: figures(relative(Z, relative(X[:-1], X[1:])))
+           for name, X in trajectories.items()}
+    out["icp_both_ways"] = figures(np.array(back).reshape(-1, 3))
     return out

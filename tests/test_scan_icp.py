@@ -1,0 +1,55 @@
+"""Raw-point scan-to-scan ICP and the agreement figures built on it."""
+
+from __future__ import annotations
+
+import numpy as np
+from cgamap.mapping.evaluation import icp_agreement
+from cgamap.mapping.odometry import relative
+from cgamap.mapping.scan_icp import icp, scan_points
+from synth2d import ROOM, scan, world
+
+WALLS = [*ROOM, (0.5, 0.2, 1.0, 0.2), (1.0, 0.2, 1.0, 0.7)]
+
+
+def _pts(pose, seed=0, sigma=0.005):
+    s = scan(world(WALLS), pose, n=360, fov=2 * np.pi, sigma=sigma, seed=seed)
+    return scan_points(s.ranges, s.angle_min, s.angle_increment)
+
+
+def test_recovers_a_known_motion():
+    p0, p1 = np.array([0.0, 0.0, 0.1]), np.array([0.4, -0.3, 0.25])
+    truth = relative(p0, p1)
+    guess = truth + np.array([0.1, -0.05, np.deg2rad(2.0)])
+    got = icp(_pts(p1, 1), _pts(p0, 2), guess)
+    assert got is not None
+    assert np.hypot(*(got - truth)[:2]) < 0.005
+    assert abs(np.degrees(got[2] - truth[2])) < 0.1
+
+
+def test_normals_only_on_flat_runs():
+    sp = _pts([0.0, 0.0, 0.0], sigma=0.0)
+    # a room: most points lie on walls, the corners have no normal
+    assert 0.8 < sp.has_normal.mean() < 1.0
+    n = sp.normals[sp.has_normal]
+    axis = np.minimum(np.abs(n[:, 0]), np.abs(n[:, 1]))  # the walls are axis-aligned
+    assert np.median(axis) < 0.01
+
+
+def test_too_few_points_is_none():
+    few = scan_points(np.full(10, 2.0), -0.5, 0.1)
+    assert icp(few, _pts([0.0, 0.0, 0.0]), np.zeros(3)) is None
+
+
+def test_agreement_tells_the_true_trajectory_from_a_jittered_one():
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    truth = np.column_stack([0.5 + 2.0 * np.cos(t), 0.5 + 1.5 * np.sin(t), t])
+    scans = [scan(world(WALLS), p, n=360, fov=2 * np.pi, sigma=0.005, seed=k)
+             for k, p in enumerate(truth)]
+    jitter = truth + np.column_stack([rng.normal(0, 0.03, (12, 2)),
+                                      rng.normal(0, np.deg2rad(1.0), 12)])
+    out = icp_agreement(scans, {"truth": truth, "jittered": jitter}, jitter)
+    assert out["truth"]["pairs"] == 11
+    assert out["truth"]["trans_median_m"] < 0.005 and out["truth"]["rot_median_deg"] < 0.1
+    assert out["jittered"]["trans_median_m"] > 0.02 and out["jittered"]["rot_median_deg"] > 0.5
+    assert out["icp_both_ways"]["trans_median_m"] < 0.002
