@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .evaluation import align_rigid_2d, apply_pose, ate, rpe
+from .evaluation import align_rigid_2d, apply_pose, ate, icp_agreement, rpe
 from .linemap import LineMap
 from .odometry import wrap_angle
 from .relocalize import DistanceField, RelocParams, relocalize
@@ -62,6 +62,7 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "total_s": round(time.perf_counter() - t_all, 2),
         "loop_closures": mapper.loops,
         "optimisations": mapper.optimizations,
+        "line_adjustment": mapper.adjusted,
     }
     ref = [getattr(s, "pose_ref", None) for s in scans]
     if n >= 2 and all(r is not None for r in ref):
@@ -74,6 +75,10 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         odo = {**ate(odometry, R), **rpe(odometry, R)}
         report["odometry"] = {k: round(v, 4) if isinstance(v, float) else v
                               for k, v in odo.items()}
+        # a log's reference is usually another SLAM run, not ground truth: how closely the
+        # estimate and the reference each follow raw-point ICP between consecutive scans
+        # says which of the two the ATE's disagreement is more likely to come from
+        report["icp_agreement"] = icp_agreement(scans, {"estimate": poses, "reference": R}, R)
     stamps = np.array([s.stamp_ns for s in scans], dtype=float) * 1e-9
     return BuildResult(mapper.map, poses, stamps, report)
 

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_batch, correct_pose
+from .line_adjust import AdjustParams, LineObservations, adjust, observations
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
 from .odometry import compose_pose2d as compose
@@ -133,9 +134,8 @@ class MapperParams:
     seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)
     seq_from_cov: bool = False  # add the correction's covariance to seq_sigma
     odo_sigma: tuple[float, float, float, float] = (0.05, 0.10, 0.02, 0.03)  # unmatched step
-    refine_passes: int = 0  # measured neutral on the Intel log; kept for other logs
-    refine_correction: CorrectionParams = field(default_factory=lambda: CorrectionParams(
-        gates=(0.15, 0.1, 0.08), angle_gates_deg=(5.0, 4.0, 3.0)))
+    # after the neighbour pass: poses and the map's walls solved together (:mod:`.line_adjust`)
+    adjust: AdjustParams = field(default_factory=AdjustParams)
     # online odometry calibration: heading drift per metre and translation scale, learnt from
     # the corrections of well-matched steps (exponential average with this weight)
     calib_rate: float = 0.05
@@ -178,6 +178,7 @@ class Mapper:
         # or when the owner asks (the daemon runs the pass on demand, :meth:`finishing_job`)
         self.keep_scans = self.params.neighbours.enabled
         self.neighbour_edges = 0
+        self.adjusted: dict = {}  # the line adjustment's figures (lines, observations, ...)
         self.dropped = 0  # nodes dropped by :meth:`compact` so far (node numbers shift)
         # the graph's edges [n0, n1) are the last neighbour pass's; the scan-to-map edges
         # before ``_weighted`` already count NeighbourParams.sequential_weight
@@ -498,9 +499,9 @@ class Mapper:
         self.optimizations += 1
 
     def finish(self) -> np.ndarray:
-        """Final optimisation (if loops were closed), the neighbour pass, then
-        ``refine_passes`` passes that align every scan with the finished map and rebuild it;
-        returns the laser poses."""
+        """Final optimisation (if loops were closed), the neighbour pass, then the line
+        adjustment (poses and walls together, :mod:`.line_adjust`); returns the laser
+        poses."""
         if self.params.loop.enabled and self.loops:
             self.optimize(final=True)
             if self.params.loop.sweep_every and self._sweep_closures():
@@ -509,8 +510,13 @@ class Mapper:
         for r in range(NP.rounds if NP.enabled else 0):
             if self._neighbour_edges(round_params(NP, r)):
                 self.optimize(final=True)
-        for _ in range(self.params.refine_passes):
-            self.refine()
+        AP = self.params.adjust
+        if AP.enabled:
+            X, self.adjusted = adjust(self.poses, self.graph,
+                                      observations(self.map, AP.min_nodes), self.anchors, AP)
+            self.graph.poses = list(X)
+            refresh(self.map, X)
+            dedupe(self.map, self.params.map)
         return self.poses
 
     def neighbour_pairs(self, NP: NeighbourParams | None = None) -> np.ndarray:
@@ -546,12 +552,14 @@ class Mapper:
             raise ValueError("this mapper keeps no per-scan segments (keep_scans)")
         copy = PoseGraph([p.copy() for p in g.poses], list(g.ei), list(g.ej), list(g.z),
                          list(g.info), list(g.loop))
-        LP = self.params.loop
+        LP, AP = self.params.loop, self.params.adjust
         do_sweep = sweep and LP.enabled and LP.sweep_every > 0
         return FinishJob(NP or self.params.neighbours, copy, list(self.scans),
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, LP if do_sweep else None,
-                         np.array(self.travel, float), source=self)
+                         np.array(self.travel, float), source=self,
+                         lines=observations(self.map, AP.min_nodes) if AP.enabled else None,
+                         adjust=AP if AP.enabled else None)
 
     def apply_finish(self, job: FinishJob) -> dict:
         """Adopt a computed :class:`FinishJob`: its edges replace the previous pass's, its
@@ -588,29 +596,6 @@ class Mapper:
         self.optimizations += 1
         shift = float(np.hypot(*(new[:, :2] - old[:, :2]).T).max()) if len(new) else 0.0
         return {"edges": len(edges), "nodes": self.count, "max_shift_m": shift}
-
-    def refine(self) -> None:
-        """Align each scan's own segments (kept as contributions) with the whole map, then
-        move the map with the new poses: the consensus of all visits pulls every scan."""
-        m = self.map
-        if not len(m.c_node):
-            return
-        X = self.poses
-        order = np.argsort(m.c_node, kind="stable")
-        nodes, starts = np.unique(m.c_node[order], return_index=True)
-        ends = np.append(starts[1:], len(order))
-        cp = self.params.refine_correction
-        index = LineIndex.of(m.a, m.b)
-        for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # one correction per scan
-            if node < 0:
-                continue  # frozen contributions of an adopted map
-            idx = order[s0:s1]
-            k = len(idx)
-            seg = Segments(m.c_a[idx], m.c_b[idx], m.c_n[idx].astype(int), np.zeros(k),
-                           m.c_cent[idx], m.c_scat[idx], np.zeros((k, 2, 2)))
-            X[node] = correct_pose(seg, m.a, m.b, X[node], 0.0, cp, index).pose
-        self.graph.poses = list(X)
-        refresh(m, X)
 
 
 def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams) -> np.ndarray:
@@ -710,8 +695,9 @@ def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int
 @dataclass
 class FinishJob:
     """The finishing pass (``rounds`` of :func:`neighbour_matches`, each followed by a graph
-    solve, the first coarse as in :meth:`Mapper.finish`) on a snapshot of a mapper's graph
-    and scans; :meth:`run` works on the snapshot only, so it may run in another thread."""
+    solve, the first coarse as in :meth:`Mapper.finish`, then the line adjustment) on a
+    snapshot of a mapper's graph, scans and walls; :meth:`run` works on the snapshot only, so
+    it may run in another thread."""
 
     params: NeighbourParams
     graph: PoseGraph
@@ -727,6 +713,9 @@ class FinishJob:
     pairs: int = 0                             # scan pairs matched, all rounds
     sweep_edges: int = 0
     source: object = field(default=None, repr=False)  # the mapper it was taken from
+    lines: LineObservations | None = None      # the map's walls, for the line adjustment
+    adjust: AdjustParams | None = None         # ... run after the rounds (None: not)
+    adjusted: dict = field(default_factory=dict)  # its figures
 
     @property
     def nodes(self) -> int:
@@ -764,6 +753,10 @@ class FinishJob:
                 g, self.block, self.weighted, swept + got, NP)
             g.optimize(fixed=self.anchors)
             self.edges = swept + got
+        if self.edges and self.lines is not None and self.adjust is not None:
+            X, self.adjusted = adjust(np.array(g.poses), g, self.lines, self.anchors,
+                                      self.adjust)
+            g.poses = list(X)
         if self.edges:
             self.poses = np.array(g.poses)
         return self
