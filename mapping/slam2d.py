@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_batch, correct_pose
-from .line_adjust import AdjustParams, LineObservations, adjust, observations
+from .line_adjust import AdjustParams, Contributions, adjust, associate
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
 from .odometry import compose_pose2d as compose
@@ -512,8 +512,9 @@ class Mapper:
                 self.optimize(final=True)
         AP = self.params.adjust
         if AP.enabled:
-            X, self.adjusted = adjust(self.poses, self.graph,
-                                      observations(self.map, AP.min_nodes), self.anchors, AP)
+            X0 = self.poses
+            obs = associate(Contributions.of(self.map), X0, AP)
+            X, self.adjusted = adjust(X0, self.graph, obs, self.anchors, AP)
             self.graph.poses = list(X)
             refresh(self.map, X)
             dedupe(self.map, self.params.map)
@@ -558,7 +559,7 @@ class Mapper:
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, LP if do_sweep else None,
                          np.array(self.travel, float), source=self,
-                         lines=observations(self.map, AP.min_nodes) if AP.enabled else None,
+                         lines=Contributions.of(self.map) if AP.enabled else None,
                          adjust=AP if AP.enabled else None)
 
     def apply_finish(self, job: FinishJob) -> dict:
@@ -713,8 +714,8 @@ class FinishJob:
     pairs: int = 0                             # scan pairs matched, all rounds
     sweep_edges: int = 0
     source: object = field(default=None, repr=False)  # the mapper it was taken from
-    lines: LineObservations | None = None      # the map's walls, for the line adjustment
-    adjust: AdjustParams | None = None         # ... run after the rounds (None: not)
+    lines: Contributions | None = None         # the map's scan segments, for ...
+    adjust: AdjustParams | None = None         # ... the line adjustment (None: not)
     adjusted: dict = field(default_factory=dict)  # its figures
 
     @property
@@ -754,8 +755,9 @@ class FinishJob:
             g.optimize(fixed=self.anchors)
             self.edges = swept + got
         if self.edges and self.lines is not None and self.adjust is not None:
-            X, self.adjusted = adjust(np.array(g.poses), g, self.lines, self.anchors,
-                                      self.adjust)
+            X0 = np.array(g.poses)
+            X, self.adjusted = adjust(X0, g, associate(self.lines, X0, self.adjust),
+                                      self.anchors, self.adjust)
             g.poses = list(X)
         if self.edges:
             self.poses = np.array(g.poses)

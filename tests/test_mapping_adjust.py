@@ -7,7 +7,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from cgamap.mapping.line_adjust import AdjustParams, adjust, observations
+from cgamap.mapping.line_adjust import AdjustParams, Contributions, adjust, associate, observations
+from cgamap.mapping.linemap import MapParams
 from cgamap.mapping.odometry import relative
 from cgamap.mapping.posegraph import PoseGraph
 from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
@@ -98,3 +99,36 @@ def test_nothing_to_adjust():
     empty = observations(_mapped(truth).map, min_nodes=100)
     X, info = adjust(truth, _weak_chain(truth), empty, 0)
     assert np.array_equal(X, truth) and info["observations"] == 0 and info["iterations"] == 0
+
+
+def _contrib(parts) -> Contributions:
+    """Contributions from (node, x0, x1, y) horizontal runs of points 2 cm apart."""
+    rows = []
+    for node, x0, x1, y in parts:
+        x = np.arange(x0, x1 + 1e-9, 0.02)
+        p = np.column_stack([x, np.full_like(x, y)])
+        c = p.mean(0)
+        rows.append((node, len(p), c, (p - c).T @ (p - c), p[0], p[-1]))
+    node, n, cent, scat, a, b = (np.array(v) for v in zip(*rows, strict=True))
+    return Contributions(node, n.astype(float), cent, scat, a, b)
+
+
+def test_association_is_tighter_than_the_online_map():
+    # nodes 0 and 1 see a wall; node 2 a cabinet face 5 cm in front of it, which the online
+    # map (merge distance 0.10 m) takes for the same wall
+    contrib = _contrib([(0, 0.0, 2.0, 1.0), (1, 1.0, 3.0, 1.0), (2, 0.5, 2.5, 1.05)])
+    X = np.zeros((3, 3))
+    tight = associate(contrib, X)
+    assert len(tight.phi) == 1 and sorted(tight.node.tolist()) == [0, 1]
+    assert abs(abs(tight.rho[0]) - 1.0) < 1e-6
+    loose = associate(contrib, X, AdjustParams(association=MapParams()))
+    assert len(loose.phi) == 1 and sorted(loose.node.tolist()) == [0, 1, 2]
+
+
+def test_contributions_snapshot_is_independent_of_the_map():
+    m = _mapped(_truth(6))
+    snap = Contributions.of(m.map)
+    assert len(snap.node) == int((m.map.c_node >= 0).sum())
+    assert np.all(np.diff(snap.node) >= 0)  # node by node, as associate needs
+    m.map.c_cent[:] = 0.0
+    assert np.abs(snap.cent).max() > 0.1
