@@ -15,6 +15,7 @@ SEEDS = (0, 1, 2, 3)
 
 def run() -> dict:
     from cgamap.mapping.evaluation import load_relations, relations_error
+    from cgamap.mapping.line_adjust import AdjustParams
     from cgamap.mapping.odometry import add_odometry_noise
     from cgamap.mapping.offline import build_map
     from cgamap.mapping.slam2d import MapperParams, NeighbourParams
@@ -39,13 +40,26 @@ def run() -> dict:
     off = build_map(scans, add_odometry_noise(odo0, "high", SEEDS[0]),
                     MapperParams(neighbours=NeighbourParams(enabled=False)))
     out["seed0_without_neighbour_pass"] = {k: off.report[k] for k in keys}
+    bare = build_map(scans, add_odometry_noise(odo0, "high", SEEDS[0]),
+                     MapperParams(adjust=AdjustParams(enabled=False)))
+    out["seed0_without_line_adjustment"] = {
+        **{k: bare.report[k] for k in keys},
+        "icp_agreement": bare.report["icp_agreement"]["estimate"]}
+    # the reference is SLAM output: which of estimate and reference follows the raw ranges
+    out["icp_agreement_seed0"] = first.report["icp_agreement"]
     rel_path = data_dir() / RELATIONS
     if rel_path.exists():
         rel = load_relations(rel_path)
         est = relations_error(first.stamps, first.poses, rel)
         ref = relations_error(first.stamps, np.array([s.pose_ref for s in scans]), rel,
                               offset=est["clock_offset_s"])
-        out["relations_seed0"] = {"estimate": est, "reference": ref}
+        out["relations_seed0"] = {"estimate": est, "reference": ref,
+                                  "without_line_adjustment":
+                                      relations_error(bare.stamps, bare.poses, rel)}
+        per_seed = [relations_error(build(s).stamps, build(s).poses, rel) for s in SEEDS]
+        out["relations_seeds_mean"] = {
+            k: round(float(np.mean([r[k] for r in per_seed])), 4)
+            for k in ("trans_mean_m", "rot_mean_deg")}
     return out
 
 
