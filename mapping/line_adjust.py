@@ -108,7 +108,7 @@ def associate(contrib: Contributions, poses: np.ndarray, params: AdjustParams | 
     P = params or AdjustParams()
     lmap = LineMap()
     nodes, starts = np.unique(contrib.node, return_index=True)
-    ends = np.append(starts[1:], len(contrib.node))
+    ends = np.append(starts[1:], len(contrib.node))[:len(starts)]  # no contributions: none
     X = np.asarray(poses, dtype=float)
     for node, s0, s1 in zip(nodes.tolist(), starts, ends, strict=True):  # per scan
         k = s1 - s0

@@ -8,7 +8,7 @@ import dataclasses
 
 import numpy as np
 from cgamap.mapping.line_adjust import AdjustParams, Contributions, adjust, associate, observations
-from cgamap.mapping.linemap import MapParams
+from cgamap.mapping.linemap import LineMap, MapParams
 from cgamap.mapping.odometry import relative
 from cgamap.mapping.posegraph import PoseGraph
 from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
@@ -99,6 +99,9 @@ def test_nothing_to_adjust():
     empty = observations(_mapped(truth).map, min_nodes=100)
     X, info = adjust(truth, _weak_chain(truth), empty, 0)
     assert np.array_equal(X, truth) and info["observations"] == 0 and info["iterations"] == 0
+    none = associate(Contributions.of(LineMap()), truth)  # a map with nothing in it
+    assert len(none) == 0 and len(none.phi) == 0
+    assert adjust(truth, _weak_chain(truth), none, 0)[1]["iterations"] == 0
 
 
 def _contrib(parts) -> Contributions:
