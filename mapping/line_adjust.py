@@ -48,7 +48,7 @@ class AdjustParams:
     sigma: float = 0.01             # range noise per point (m)
     floor: tuple[float, float] = (0.01, 0.0033)  # added to each observation's std (m, rad)
     gate: float = 0.05              # observations whose centroid is farther from their wall
-    # than this (m) are left out at each step: a merge the online map made too loosely
+    # than this (m) are left out at each step (after a wider first one): a wrong association
     robust: float = 3.0             # Cauchy scale on an observation's Mahalanobis distance
     graph_weight: float = 2.0       # the pose graph's edges count this much against the lines
     min_nodes: int = 2              # a wall enters when seen from at least this many scans
@@ -193,7 +193,8 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
         H = (J.T @ sp.diags(W) @ J).tocsc()
         g = J.T @ (W * np.concatenate([e1, e2]))
         Hg, gg, _ = graph.normal_equations(X, 3.0)
-        H = H + P.graph_weight * sp.block_diag([Hg, sp.csc_matrix((2 * L, 2 * L))]) + hold + damp
+        Hg = sp.block_diag([Hg, sp.csc_matrix((2 * L, 2 * L))])
+        H = H + P.graph_weight * Hg + hold + damp
         g[:3 * n] += P.graph_weight * gg
         dx = spsolve(H.tocsc(), -g)
         X += dx[:3 * n].reshape(n, 3)
