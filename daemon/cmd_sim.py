@@ -33,6 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rtu", action="store_true", help="modbus-base: Modbus RTU on a pty")
     p.add_argument("--model", default=None,
                    help="hokuyo: UTM-30LX (default), URG-04LX or UST-10LX (TCP)")
+    p.add_argument("--pace-output", action="store_true",
+                   help="lms2xx: send bytes at the wire rate of the current baud, in ~2 ms "
+                        "chunks, as a real serial line would (default: each telegram at "
+                        "once, as a pty delivers it)")
     p.set_defaults(func=run)
 
 
@@ -50,6 +54,8 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError(f"sim-device: --rtu: only for modbus-base, not {args.name}")
     if args.model is not None and args.name != "hokuyo":
         raise UsageError(f"sim-device: --model: only for hokuyo, not {args.name}")
+    if getattr(args, "pace_output", False) and args.name != "lms2xx":
+        raise UsageError(f"sim-device: --pace-output: only for lms2xx, not {args.name}")
     if args.name in LASER_TWINS:
         from cgamap.drivers.sim.world import WORLDS
 
