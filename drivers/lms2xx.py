@@ -56,6 +56,7 @@ BAUD_PROBE_ORDER = (9600, 19200, 38400, 500000)
 BAUD_CODES = {38400: 0x40, 19200: 0x41, 9600: 0x42, 500000: 0x48}
 PASSWORD = b"SICK_LMS"
 SWEEP_HZ = 75.0  # native mirror rate (one 1° sweep)
+# Fixed for every supported variant (0.5°/0.25°: 2/4 sweeps): sicktoolbox_wrapper sicklms.cpp
 SWEEP_NS = round(1e9 / SWEEP_HZ)  # host ns per count of the real-time index
 # The sweep rate is held by the mirror's motor control, not by a quartz clock, so counts
 # times SWEEP_NS drift against the host clock by the motor's rate error; the DeviceClock's
