@@ -13,10 +13,11 @@ Layout of a recording folder (what ``cgamap stereo --out DIR`` writes; ``left/``
 
 Replay pushes every pair through the same rectify + SGBM path as the live cameras.
 
-Crash safety: a frame's files reach the disk before its ``frames.jsonl`` line, and each line
-is one ``write`` followed by ``fsync``, so a crash or power cut can leave at most the last line
-torn (cut short, no newline).  Replay drops such a tail (counted in ``torn_tail``, one
-warning); a damaged line anywhere else is an error naming its line number.
+Crash safety: a frame's files reach the disk (data and names fsynced) before its
+``frames.jsonl`` line, and each line is one ``write`` followed by ``fsync``, so a crash or
+power cut can leave at most the last line torn (cut short, no newline).  Replay drops such
+a tail (counted in ``torn_tail``, one warning); a damaged line anywhere else is an error
+naming its line number.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .fileio import fsync_dir, mkdir_synced, write_bytes_synced
 from .messages import PanTiltState
 from .stereo import StereoFrame, StereoGrabber, frame_points, frame_points_global, sgbm_frame
 from .stereo_calib import (
@@ -187,11 +189,7 @@ def append_line(path: Path, line: bytes) -> None:
     finally:
         os.close(fd)
     if created:  # the new file's directory entry must survive a power cut too
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+        fsync_dir(path.parent)
 
 
 #: How a recording's files reach the disk: ``write_file(path, data)``.
@@ -222,19 +220,23 @@ def npy_bytes(arr: np.ndarray) -> bytes:
 class SequenceWriter:
     """Writes frames into a recording folder (the layout above).
 
-    Every file of a frame is encoded in memory first and then handed whole to ``write_file``.
-    Drivers may not import ``mapping``, so the crash-safe writer is passed in from above:
-    ``cgamap stereo`` gives ``mapping.fileio.write_bytes_atomic`` (temp file, fsync, rename),
-    so a frame cut short by a full disk or a kill is never left under its final name.  The
-    default, ``Path.write_bytes``, writes in place (tests, scratch folders).  ``frames.jsonl``
-    gets a frame's line only after all of the frame's files are written, as one write and an
-    fsync (:func:`append_line`), so a line never names a file that is not on the disk.  On a
+    Every file of a frame is encoded in memory first and then handed whole to ``write_file``,
+    which must return only once the file is on the disk.  Drivers may not import ``mapping``,
+    so the atomic writer is passed in from above: ``cgamap stereo`` gives
+    ``mapping.fileio.write_bytes_atomic`` (temp file, fsync, rename), so a frame cut short by
+    a full disk or a kill is never left under its final name.  The default,
+    :func:`~.fileio.write_bytes_synced`, writes in place and fsyncs the file and a new file's
+    folder (a frame cut short may leave a partial file, but no line names it).  Folders are
+    made with their names fsynced (:func:`~.fileio.mkdir_synced`).  ``frames.jsonl`` gets a
+    frame's line only after all of the frame's files are written, as one write and an fsync
+    (:func:`append_line`), so a line never names a file that is not on the disk.  On a
     folder that already has an index, a torn last line is truncated first
     (:func:`repair_index_tail`), so appended lines never glue onto it."""
 
     def __init__(self, out: str | Path, save_points: bool = True, stride: int = 1,
                  max_depth: float = np.inf, global_frame: bool = False,
-                 mount: CameraMount | None = None, write_file: WriteFile = Path.write_bytes):
+                 mount: CameraMount | None = None,
+                 write_file: WriteFile = write_bytes_synced):
         self.out = Path(out)
         self.global_frame = global_frame
         self.mount = mount
@@ -285,7 +287,7 @@ class SequenceWriter:
     def write(self, frame: StereoFrame) -> dict:
         """Write one frame; returns its index record (also appended to frames.jsonl)."""
         rec, files = self.encode(frame)
-        self.out.mkdir(parents=True, exist_ok=True)
+        mkdir_synced(self.out)
         if not self._calib_written:
             c = frame.calib  # images are stored rectified: store the rectified calibration
             rect = rectified_calibration(c.fx, c.cx, c.cy, c.baseline, fy=c.fy, size=c.size,
@@ -293,7 +295,7 @@ class SequenceWriter:
             self.write_file(self.out / "calibration.yaml", calibration_text(rect).encode())
             self._calib_written = True
         for rel, data in files.items():
-            (self.out / rel).parent.mkdir(exist_ok=True)
+            mkdir_synced((self.out / rel).parent)
             self.write_file(self.out / rel, data)
         append_line(self.out / INDEX_NAME, (json.dumps(rec) + "\n").encode())
         self.count += 1
