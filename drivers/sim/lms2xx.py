@@ -443,6 +443,7 @@ class Lms2xxTwin(ScanTwin):
 def main(args: argparse.Namespace) -> int:
     """``cgamap sim-device lms2xx``: print the device path, serve until SIGINT/SIGTERM.
 
+    ``--pace-output`` sets ``pace_output`` (bytes at the wire rate, see the module docstring).
     SIGUSR1 unplugs the device for 2 s and plugs it back; SIGUSR2 stalls it for 2 s.
     """
     twin = Lms2xxTwin(getattr(args, "world", "corridor"), seed=getattr(args, "seed", 0),
