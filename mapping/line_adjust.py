@@ -37,7 +37,7 @@ from scipy.sparse.linalg import spsolve
 
 from .linemap import LineMap, MapParams, dedupe, integrate
 from .odometry import wrap_angle as wrap
-from .posegraph import PoseGraph, hold_nodes
+from .posegraph import ROBUST_SCALE, PoseGraph, hold_nodes
 from .segments import Segments, tls_from_moments
 
 
@@ -192,7 +192,7 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
         W = np.concatenate([w1 * wr, w2 * wr])
         H = (J.T @ sp.diags(W) @ J).tocsc()
         g = J.T @ (W * np.concatenate([e1, e2]))
-        Hg, gg, _ = graph.normal_equations(X, 3.0)
+        Hg, gg, _ = graph.normal_equations(X, ROBUST_SCALE)
         Hg = sp.block_diag([Hg, sp.csc_matrix((2 * L, 2 * L))])
         H = H + P.graph_weight * Hg + hold + damp
         g[:3 * n] += P.graph_weight * gg

@@ -20,6 +20,9 @@ from scipy.sparse.linalg import spsolve
 from .odometry import relative
 from .odometry import wrap_angle as wrap
 
+# Cauchy scale of the loop edges' Mahalanobis distance, shared by every solve of the graph
+ROBUST_SCALE = 3.0
+
 
 @dataclass
 class PoseGraph:
@@ -87,7 +90,7 @@ class PoseGraph:
         np.add.at(g, 3 * j[:, None] + r3, np.einsum("kij,kj->ki", BtW, e))
         return H, g, float(np.sum(w * m2))
 
-    def optimize(self, iterations: int = 10, robust_scale: float = 3.0,
+    def optimize(self, iterations: int = 10, robust_scale: float = ROBUST_SCALE,
                  fixed: int | list[int] = 0) -> dict:
         """Gauss-Newton over all poses (the ``fixed`` node or nodes held); updates ``poses``
         in place."""
