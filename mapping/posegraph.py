@@ -91,12 +91,16 @@ class PoseGraph:
         return H, g, float(np.sum(w * m2))
 
     def optimize(self, iterations: int = 10, robust_scale: float = ROBUST_SCALE,
-                 fixed: int | list[int] = 0) -> dict:
+                 fixed: int | list[int] = 0, free_from: int = 0) -> dict:
         """Gauss-Newton over all poses (the ``fixed`` node or nodes held); updates ``poses``
-        in place."""
+        in place.  ``free_from`` > 0 solves only the nodes from there on: the older nodes
+        stay where they are, and those tied to the free ones by an edge are held, so the
+        cost follows the free nodes and their edges, not the whole graph."""
         n = len(self.poses)
         if n < 2 or not self.ei:
             return {"iterations": 0, "chi2": 0.0}
+        if free_from > 0:
+            return self._optimize_window(iterations, robust_scale, fixed, free_from)
         X = np.array(self.poses)
         hold = hold_nodes(fixed, n)
         chi2 = 0.0
@@ -111,6 +115,27 @@ class PoseGraph:
                 break
         self.poses = list(X)
         return {"iterations": it + 1, "chi2": chi2}
+
+    def _optimize_window(self, iterations: int, robust_scale: float,
+                         fixed: int | list[int], free_from: int) -> dict:
+        ei, ej = np.array(self.ei, int), np.array(self.ej, int)
+        sel = np.nonzero(np.maximum(ei, ej) >= free_from)[0]
+        if not len(sel):
+            return {"iterations": 0, "chi2": 0.0, "nodes": 0}
+        nodes = np.union1d(np.unique(np.concatenate([ei[sel], ej[sel]])),
+                           np.arange(free_from, len(self.poses)))
+        local = {int(k): m for m, k in enumerate(nodes)}
+        held = [local[int(k)] for k in nodes if k < free_from]
+        held += [local[int(k)] for k in np.atleast_1d(fixed) if int(k) in local]
+        sub = PoseGraph([self.poses[int(k)] for k in nodes],
+                        [local[int(k)] for k in ei[sel]], [local[int(k)] for k in ej[sel]],
+                        [self.z[e] for e in sel], [self.info[e] for e in sel],
+                        [self.loop[e] for e in sel])
+        got = sub.optimize(iterations, robust_scale, held or [0])
+        for m, k in enumerate(nodes):
+            if k >= free_from:
+                self.poses[int(k)] = sub.poses[m]
+        return {**got, "nodes": int(np.sum(nodes >= free_from))}
 
 
 def hold_nodes(fixed: int | list[int], n: int, size: int | None = None) -> sp.csc_matrix:

@@ -72,6 +72,10 @@ class LoopParams:
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations ...
     cooldown_travel: float = 2.0  # ... and metres (a dense log must not re-solve every scan)
+    # the optimisation while mapping solves the newest ``online_window`` nodes; the older
+    # ones stay put, held where a closure ties to them (the finishing pass solves them
+    # all).  A daemon's graph of 20 000 nodes must not cost every closure a whole solve
+    online_window: int = 2000
     quiet_after: int = 4          # scans without attempts after a closure that agreed
     sweep_every: int = 2          # after the run: tracking closures on every n-th scan (0: off)
     sweep_radius: float = 2.0     # ... with the nearest earlier visit within this (m)
@@ -489,8 +493,11 @@ class Mapper:
         return Hypothesis(corr.pose, sc)
 
     def optimize(self, final: bool = False) -> None:
-        """Solve the pose graph and move the map with it."""
-        self.graph.optimize(fixed=self.anchors)
+        """Solve the pose graph and move the map with it (while mapping: the window of
+        :class:`LoopParams` ``online_window``; ``final``: all nodes)."""
+        LP = self.params.loop
+        start = 0 if final else max(0, self.count - LP.online_window)
+        self.graph.optimize(fixed=self.anchors, free_from=start)
         refresh(self.map, self.poses)
         # the walls near the closure are the ones that came to coincide
         dedupe(self.map, self.params.map, since=None if final else self.count - 60)

@@ -86,6 +86,43 @@ def test_pose_graph_closes_a_square_loop():
     assert np.allclose(g.poses[0], true[0])  # the first node is held
 
 
+def _square_loop_graph(seed: int = 1) -> tuple[PoseGraph, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    true = [np.zeros(3)]
+    for k in range(59):
+        true.append(compose(true[-1], [1.0, 0.0, np.pi / 2 if k % 10 == 9 else 0.0]))
+    g = PoseGraph([np.zeros(3)])
+    info = np.diag([1 / 0.02 ** 2, 1 / 0.02 ** 2, 1 / 0.01 ** 2])
+    for k in range(1, 60):
+        z = relative(true[k - 1], true[k]) + rng.normal(0, [0.02, 0.02, 0.01])
+        g.add_node(compose(g.poses[-1], z))
+        g.add_edge(k - 1, k, z, info)
+    # closures from the last lap to the first and to the middle of the run
+    for i, j in [(0, 40), (10, 50), (25, 55), (30, 59)]:
+        g.add_edge(i, j, relative(true[i], true[j]), info * 4, loop=True)
+    return g, np.array(true)
+
+
+def test_windowed_solve_is_the_full_solve_with_the_old_nodes_held():
+    g, _ = _square_loop_graph()
+    full = PoseGraph([p.copy() for p in g.poses], g.ei, g.ej, g.z, g.info, g.loop)
+    before = np.array(g.poses)
+    got = g.optimize(free_from=35)
+    full.optimize(fixed=list(range(35)))
+    after = np.array(g.poses)
+    assert np.array_equal(after[:35], before[:35])        # the old nodes did not move
+    assert np.abs(after[35:] - before[35:]).max() > 0.05  # the window did
+    assert np.allclose(after, np.array(full.poses), atol=1e-5)
+    assert got["nodes"] == 25
+
+
+def test_windowed_solve_of_a_window_without_edges_changes_nothing():
+    g = PoseGraph([np.zeros(3), np.ones(3)], [0], [1], [np.zeros(3)], [np.eye(3)], [False])
+    g.poses.append(np.full(3, 2.0))   # a node no edge reaches
+    assert g.optimize(free_from=2)["iterations"] == 0
+    assert np.allclose(g.poses[2], 2.0)
+
+
 def test_ate_is_zero_after_a_rigid_motion_and_rpe_sees_steps():
     t = np.linspace(0, 10, 60)
     ref = np.column_stack([t, np.sin(t), np.cos(t)])

@@ -159,3 +159,32 @@ def test_adopted_map_and_re_anchoring():
     est = second.finish()
     assert len(second.anchors) == 2
     assert ate(est, truth[half:])["ate_trans_m"] < 0.15
+
+
+def test_online_optimisation_solves_only_its_window():
+    """While mapping, a closure re-solves the newest ``online_window`` nodes and leaves the
+    older ones where they are; the finishing pass still solves them all."""
+    from cgamap.mapping.evaluation import ate
+    from cgamap.mapping.slam2d import LoopParams, Mapper, MapperParams
+
+    w = get_world("loop")
+    t = np.arange(0, 3 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    odo = add_odometry_noise(truth, "high", seed=5)
+    window = 40
+    m = Mapper(MapperParams(loop=LoopParams(online_window=window)), initial_pose=odo[0])
+    moved_old, moved_new, solves = 0.0, 0.0, 0
+    for k, (p, o) in enumerate(zip(truth, odo, strict=True)):
+        before = m.poses
+        s = scan(w, p, n=180, sigma=0.01, seed=k)
+        res = m.step(s.ranges, s.angle_min, s.angle_increment, o)
+        if res.optimized:
+            solves += 1
+            old = len(before) + 1 - window   # the window holds the newest ``window`` nodes
+            after = m.poses[:len(before)]
+            moved_old = max(moved_old, float(np.abs(after[:old] - before[:old]).max()))
+            moved_new = max(moved_new, float(np.abs(after[old:] - before[old:]).max()))
+    assert solves >= 1 and len(truth) > 2 * window
+    assert moved_old == 0.0 and moved_new > 0.01
+    X = m.finish()
+    assert ate(X, truth)["ate_trans_m"] < 0.05
