@@ -33,11 +33,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
 
 from .linemap import LineMap, MapParams, dedupe, integrate
 from .odometry import wrap_angle as wrap
-from .posegraph import ROBUST_SCALE, PoseGraph, hold_nodes
+from .posegraph import ROBUST_SCALE, PoseGraph, hold_nodes, solve_normal
 from .segments import Segments, tls_from_moments
 
 
@@ -196,7 +195,7 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
         Hg = sp.block_diag([Hg, sp.csc_matrix((2 * L, 2 * L))])
         H = H + P.graph_weight * Hg + hold + damp
         g[:3 * n] += P.graph_weight * gg
-        dx = spsolve(H.tocsc(), -g)
+        dx = solve_normal(H, -g, n)
         X += dx[:3 * n].reshape(n, 3)
         X[:, 2] = wrap(X[:, 2])
         phi += dx[3 * n::2]

@@ -606,17 +606,20 @@ class Mapper:
         return {"edges": len(edges), "nodes": self.count, "max_shift_m": shift}
 
 
-def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams) -> np.ndarray:
-    """(p, 2) node pairs j < i for the neighbour pass: positions ``X`` within ``radius``
-    (for each later node at most ``max_pairs`` of them, evenly spread over the earlier
-    nodes' order), and each node with its ``previous`` predecessors; nodes with fewer than
-    two segments left out."""
-    n = len(X)
-    near = np.sort(cKDTree(X[:, :2]).query_pairs(NP.radius, output_type="ndarray")
-                   .reshape(-1, 2), axis=1)
+def _spread_pairs(tree: cKDTree, X: np.ndarray, later: np.ndarray,
+                  NP: NeighbourParams) -> np.ndarray:
+    """(p, 2) pairs (j, i), j < i, for the nodes i of ``later``: the earlier nodes within
+    ``radius``, at most ``max_pairs`` of them per i, evenly spread over their order."""
+    found = tree.query_ball_point(X[later, :2], NP.radius)
+    counts = np.array([len(f) for f in found], int)
+    if not counts.sum():
+        return np.zeros((0, 2), int)
+    i = np.repeat(later, counts)
+    j = np.concatenate([np.asarray(f, int) for f in found])
+    near = np.column_stack([j, i])[j < i]
+    near = near[np.lexsort((near[:, 0], near[:, 1]))]       # by later node, then earlier
     K = NP.max_pairs
     if K > 0 and len(near):
-        near = near[np.lexsort((near[:, 0], near[:, 1]))]   # by later node, then earlier
         _, first, count = np.unique(near[:, 1], return_index=True, return_counts=True)
         c = np.repeat(count, count)
         rank = np.arange(len(near)) - np.repeat(first, count)
@@ -625,6 +628,22 @@ def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams) -> np.ndarr
         s = np.maximum(c - 1, 1) / max(K - 1, 1)
         keep = (c <= K) | (np.round(np.round(rank / s) * s) == rank)
         near = near[keep]
+    return near
+
+
+def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams,
+                    chunk: int = 2000) -> np.ndarray:
+    """(p, 2) node pairs j < i for the neighbour pass: positions ``X`` within ``radius``
+    (for each later node at most ``max_pairs`` of them, evenly spread over the earlier
+    nodes' order), and each node with its ``previous`` predecessors; nodes with fewer than
+    two segments left out."""
+    n = len(X)
+    tree = cKDTree(X[:, :2])
+    # by chunks of later nodes: a robot that has driven the same rooms for hours has
+    # thousands of earlier scans near each one, and all the pairs at once would not fit
+    near = [_spread_pairs(tree, X, np.arange(c0, min(c0 + chunk, n)), NP)
+            for c0 in range(0, n, chunk)] or [np.zeros((0, 2), int)]
+    near = np.concatenate(near)
     i = np.arange(n)
     seq = [np.column_stack([i[k:] - k, i[k:]]) for k in range(1, NP.previous + 1)]
     pairs = np.unique(np.concatenate([near, *seq]).astype(int), axis=0)

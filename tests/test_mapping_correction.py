@@ -134,3 +134,37 @@ def test_ate_is_zero_after_a_rigid_motion_and_rpe_sees_steps():
     bumped = ref.copy()
     bumped[30:, 1] += 0.1
     assert rpe(bumped, ref)["rpe_trans_m"] > 0.01
+
+
+@pytest.mark.parametrize("cg_iterations", [400, 1])
+def test_large_normal_equations_go_to_conjugate_gradients(monkeypatch, cg_iterations):
+    """Above DIRECT_MAX the step comes from block-Jacobi CG (or, when CG does not converge,
+    from the factor): the same solution either way."""
+    import cgamap.mapping.posegraph as pg
+
+    g, true = _square_loop_graph(seed=3)
+    exact = PoseGraph([p.copy() for p in g.poses], g.ei, g.ej, g.z, g.info, g.loop)
+    exact.optimize()
+    calls = []
+    monkeypatch.setattr(pg, "DIRECT_MAX", 0)
+    monkeypatch.setattr(pg, "CG_ITERATIONS", cg_iterations)
+    real_pcg = pg._pcg
+    monkeypatch.setattr(pg, "_pcg", lambda *a: calls.append(1) or real_pcg(*a))
+    g.optimize()
+    assert calls
+    assert np.allclose(np.array(g.poses), np.array(exact.poses), atol=1e-6)
+    assert ate(np.array(g.poses), true)["ate_trans_m"] < 0.1
+
+
+def test_neighbour_pairs_are_the_same_in_any_chunking():
+    from cgamap.mapping.slam2d import NeighbourParams, neighbour_pairs
+
+    rng = np.random.default_rng(4)
+    X = np.column_stack([rng.uniform(0, 6, 500), rng.uniform(0, 3, 500), np.zeros(500)])
+    scans = [(np.zeros((3, 2)), np.ones((3, 2)))] * len(X)
+    NP = NeighbourParams(max_pairs=8)
+    whole = neighbour_pairs(X, scans, NP, chunk=len(X))
+    assert len(whole) > 8 * 300  # the cap is in play
+    assert np.array_equal(neighbour_pairs(X, scans, NP, chunk=37), whole)
+    per_node = np.bincount(whole[:, 1], minlength=len(X))
+    assert per_node.max() <= 8 + NP.previous
