@@ -43,7 +43,8 @@ def run() -> dict:
     P = MapperParams()
     res = build_map(scans, add_odometry_noise(X, "high", 0), P)
     keys = ("scans_processed", "ms_per_scan_median", "ms_per_scan_p95",
-            "final_optimisation_ms", "loop_closures", "ate_trans_m", "ate_rot_deg")
+            "final_optimisation_ms", "loop_closures", "sweep_closures", "ate_trans_m",
+            "ate_rot_deg")
     out = {"world": "loop", "step_m": STEP_M, "laps": LAPS, "beams": BEAMS,
            **{k: res.report[k] for k in keys}}
     segs = [extract_segments(s.ranges, s.angle_min, s.angle_increment, P.segments)

@@ -61,6 +61,7 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "final_optimisation_ms": round(t_final * 1e3, 1),
         "total_s": round(time.perf_counter() - t_all, 2),
         "loop_closures": mapper.loops,
+        "sweep_closures": mapper.sweep_edges,
         "optimisations": mapper.optimizations,
         "line_adjustment": mapper.adjusted,
     }

@@ -180,8 +180,10 @@ class Mapper:
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
         # the finishing pass needs each node's own segments: kept when the pass is enabled,
         # or when the owner asks (the daemon runs the pass on demand, :meth:`finishing_job`)
-        self.keep_scans = self.params.neighbours.enabled
+        self.keep_scans = self.params.neighbours.enabled or (
+            self.params.loop.enabled and self.params.loop.sweep_every > 0)
         self.neighbour_edges = 0
+        self.sweep_edges = 0  # tracking closures of the last finishing pass's sweep
         self.adjusted: dict = {}  # the line adjustment's figures (lines, observations, ...)
         self.dropped = 0  # nodes dropped by :meth:`compact` so far (node numbers shift)
         # the graph's edges [n0, n1) are the last neighbour pass's; the scan-to-map edges
@@ -434,48 +436,7 @@ class Mapper:
         return LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
                        np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
 
-    def _sweep_closures(self) -> int:
-        """After the run: with the optimised poses every revisit is close to its earlier
-        visit, so the cheap tracking closure is tried on every ``sweep_every``-th scan
-        against its nearest earlier visit; returns the edges added."""
-        LP = self.params.loop
-        m = self.map
-        X = self.poses
-        order = np.argsort(m.c_node, kind="stable")
-        nodes, starts = np.unique(m.c_node[order], return_index=True)
-        ends = np.append(starts[1:], len(order))
-        added = 0
-        for node, s0, s1 in zip(nodes, starts, ends, strict=True):  # per scan, not per point
-            i = int(node)
-            if i < 0:
-                continue  # frozen contributions of an adopted map
-            last = self._last_old(i)
-            if last < 0 or i % LP.sweep_every or s1 - s0 < 2:
-                continue
-            old = X[: last + 1]
-            dist = np.linalg.norm(old[:, :2] - X[i, :2], axis=-1)
-            j = int(np.argmin(dist))
-            if dist[j] > LP.sweep_radius:
-                continue
-            sub = self._submap(X, j, last)
-            if sub is None:
-                continue
-            idx = order[s0:s1]
-            k = len(idx)
-            seg = Segments(m.c_a[idx], m.c_b[idx], m.c_n[idx].astype(int), np.zeros(k),
-                           m.c_cent[idx], m.c_scat[idx], np.zeros((k, 2, 2)))
-            best = self._closure_by_tracking(seg, sub, relative(X[j], X[i]), points=False)
-            if best is None:
-                continue
-            st, sr = LP.sigma
-            self.graph.add_edge(j, i, best.pose, np.diag([st ** -2, st ** -2, sr ** -2]),
-                                loop=True)
-            added += 1
-        self.loops += added
-        return added
-
-    def _closure_by_tracking(self, seg: Segments, sub: LineMap, guess: np.ndarray,
-                             points: bool = True):
+    def _closure_by_tracking(self, seg: Segments, sub: LineMap, guess: np.ndarray):
         """The cheap way first: point-to-line correction from the current estimate with wide
         gates; accepted when it fixes the pose in every direction and the scan fits."""
         LP = self.params.loop
@@ -483,10 +444,6 @@ class Mapper:
         std = np.sqrt(np.linalg.eigvalsh(corr.cov[:2, :2]).max())
         if std > LP.max_std or corr.matched_fraction < 0.5:
             return None
-        if not points:  # segments only (the sweep): their matched share is the score
-            if corr.matched_fraction < LP.tracking_score or corr.rms > 0.05:
-                return None
-            return Hypothesis(corr.pose, corr.matched_fraction)
         sc = inlier_fraction(seg.points, corr.pose, sub.a, sub.b, self.params.reloc.inlier_dist)
         if sc < LP.tracking_score:
             return None
@@ -506,18 +463,15 @@ class Mapper:
         self.optimizations += 1
 
     def finish(self) -> np.ndarray:
-        """Final optimisation (if loops were closed), the neighbour pass, then the line
-        adjustment (poses and walls together, :mod:`.line_adjust`); returns the laser
-        poses."""
+        """Final optimisation of all nodes (if loops were closed), then the finishing pass
+        (:class:`FinishJob`: tracking sweep, neighbour rounds, line adjustment), the same
+        computation the daemon runs on a snapshot; returns the laser poses."""
         if self.params.loop.enabled and self.loops:
             self.optimize(final=True)
-            if self.params.loop.sweep_every and self._sweep_closures():
-                self.optimize(final=True)
-        NP = self.params.neighbours
-        for r in range(NP.rounds if NP.enabled else 0):
-            if self._neighbour_edges(round_params(NP, r)):
-                self.optimize(final=True)
-        AP = self.params.adjust
+        if len(self.scans) == self.count:
+            self.apply_finish(self.finishing_job(sweep=True).run())
+            return self.poses
+        AP = self.params.adjust  # no per-scan segments kept: the line adjustment alone
         if AP.enabled:
             X0 = self.poses
             obs = associate(Contributions.of(self.map), X0, AP)
@@ -532,29 +486,14 @@ class Mapper:
         current estimate, and each node with its ``previous`` predecessors."""
         return neighbour_pairs(self.poses, self.scans, NP or self.params.neighbours)
 
-    def _neighbour_edges(self, NP: NeighbourParams | None = None) -> int:
-        """The finishing pass (:class:`NeighbourParams`) on this graph, in place: the good
-        scan-to-scan matches (:func:`neighbour_matches`) replace the previous pass's edges.
-        Returns the edges added."""
-        NP = NP or self.params.neighbours
-        if len(self.scans) != self.count or self.count < 2:
-            return 0
-        new_edges = neighbour_matches(self.poses, self.scans, NP)
-        if not new_edges:
-            return 0
-        self._neighbour_block, self._weighted = _replace_neighbour_edges(
-            self.graph, self._neighbour_block, self._weighted, new_edges, NP)
-        self.neighbour_edges = len(new_edges)
-        return len(new_edges)
-
     def finishing_job(self, NP: NeighbourParams | None = None,
                       sweep: bool = False) -> FinishJob:
-        """The neighbour pass of :meth:`finish` on a copy of the graph and the kept scans, to
-        be computed anywhere (:meth:`FinishJob.run` touches nothing of this mapper) and
-        applied with :meth:`apply_finish` -- how a mapper that never finishes (the daemon)
-        gets the pass without stopping its scans (``max_pairs`` keeps it linear in the
-        nodes however long the robot runs).  ``sweep`` adds the tracking
-        closures of :meth:`finish`'s sweep, from the kept scans (:func:`sweep_matches`)."""
+        """The finishing pass on a copy of the graph and the kept scans, to be computed
+        anywhere (:meth:`FinishJob.run` touches nothing of this mapper) and applied with
+        :meth:`apply_finish` -- :meth:`finish` does both; a mapper that never finishes (the
+        daemon) gets the pass this way without stopping its scans (``max_pairs`` keeps it
+        linear in the nodes however long the robot runs).  ``sweep`` adds the tracking
+        closures (:func:`sweep_matches`) before the neighbour rounds."""
         g = self.graph
         if len(self.scans) != self.count:
             raise ValueError("this mapper keeps no per-scan segments (keep_scans)")
@@ -562,7 +501,8 @@ class Mapper:
                          list(g.info), list(g.loop))
         LP, AP = self.params.loop, self.params.adjust
         do_sweep = sweep and LP.enabled and LP.sweep_every > 0
-        return FinishJob(NP or self.params.neighbours, copy, list(self.scans),
+        NP = NP or self.params.neighbours
+        return FinishJob(NP if NP.enabled else replace(NP, rounds=0), copy, list(self.scans),
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, LP if do_sweep else None,
                          np.array(self.travel, float), source=self,
@@ -570,15 +510,16 @@ class Mapper:
                          adjust=AP if AP.enabled else None)
 
     def apply_finish(self, job: FinishJob) -> dict:
-        """Adopt a computed :class:`FinishJob`: its edges replace the previous pass's, its
-        poses replace the snapshot's nodes (nodes added since follow the newest snapshot node
-        rigidly, up to a re-anchor), and the map is rebuilt from them.  Nodes compacted away
-        meanwhile drop out with their edges.  Returns figures (edges, nodes, max_shift_m);
-        ValueError for another mapper's job (e.g. this one was replaced meanwhile)."""
+        """Adopt a computed :class:`FinishJob`: its edges (if it found any) replace the
+        previous pass's, its poses replace the snapshot's nodes (nodes added since follow
+        the newest snapshot node rigidly, up to a re-anchor), and the map is rebuilt from
+        them.  Nodes compacted away meanwhile drop out with their edges.  Returns figures
+        (edges, nodes, max_shift_m); ValueError for another mapper's job (e.g. this one was
+        replaced meanwhile)."""
         if job.source is not self:
             raise ValueError("the job is another mapper's snapshot; nothing applied")
         out = {"edges": 0, "nodes": self.count, "max_shift_m": 0.0}
-        if job.poses is None or not job.edges:
+        if job.poses is None:
             return out
         cut = self.dropped - job.base     # nodes compacted away since the snapshot
         n_snap = len(job.poses)
@@ -593,12 +534,14 @@ class Mapper:
             # the scans mapped while the job ran: moved with the chain they hang on
             new[ref + 1:stop] = compose(new[ref], relative(old[ref], old[ref + 1:stop]))
         edges = [(j - cut, i - cut, z, info) for j, i, z, info in job.edges if j - cut >= 0]
-        if not edges:
-            return out
         self.graph.poses = list(new)
-        self._neighbour_block, self._weighted = _replace_neighbour_edges(
-            self.graph, self._neighbour_block, self._weighted, edges, job.params)
-        self.neighbour_edges = len(edges)
+        if edges:
+            self._neighbour_block, self._weighted = _replace_neighbour_edges(
+                self.graph, self._neighbour_block, self._weighted, edges, job.params)
+            self.neighbour_edges = len(edges)
+        self.sweep_edges = job.sweep_edges
+        if job.adjusted:
+            self.adjusted = job.adjusted
         refresh(self.map, new)
         dedupe(self.map, self.params.map)
         self.optimizations += 1
@@ -721,10 +664,10 @@ def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int
 
 @dataclass
 class FinishJob:
-    """The finishing pass (``rounds`` of :func:`neighbour_matches`, each followed by a graph
-    solve, the first coarse as in :meth:`Mapper.finish`, then the line adjustment) on a
-    snapshot of a mapper's graph, scans and walls; :meth:`run` works on the snapshot only, so
-    it may run in another thread."""
+    """The finishing pass (the tracking sweep, ``rounds`` of :func:`neighbour_matches`, each
+    followed by a graph solve, then the line adjustment) on a snapshot of a mapper's graph,
+    scans and walls; :meth:`run` works on the snapshot only, so it may run in another
+    thread."""
 
     params: NeighbourParams
     graph: PoseGraph
@@ -756,8 +699,8 @@ class FinishJob:
             return self
         swept: list = []
         if self.sweep is not None:
-            # as finish() does before its rounds: each revisit tied to its earlier visit's
-            # submap; the edges stay in the block with every round's
+            # before the rounds: each revisit tied to its earlier visit's submap; the
+            # edges stay in the block with every round's
             swept = sweep_matches(np.array(g.poses), self.scans, self.travel, self.sweep, stop)
             self.sweep_edges = len(swept)
             if swept:
@@ -780,13 +723,12 @@ class FinishJob:
                 g, self.block, self.weighted, swept + got, NP)
             g.optimize(fixed=self.anchors)
             self.edges = swept + got
-        if self.edges and self.lines is not None and self.adjust is not None:
+        if self.lines is not None and self.adjust is not None:
             X0 = np.array(g.poses)
             X, self.adjusted = adjust(X0, g, associate(self.lines, X0, self.adjust),
                                       self.anchors, self.adjust)
             g.poses = list(X)
-        if self.edges:
-            self.poses = np.array(g.poses)
+        self.poses = np.array(g.poses)
         return self
 
 

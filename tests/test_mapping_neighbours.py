@@ -98,5 +98,34 @@ def test_neighbour_pass_improves_a_noisy_run():
         errs[on] = float(np.sqrt(np.mean(np.sum((al[:, :2] - truth[:, :2]) ** 2, -1))))
         if on:
             assert m.neighbour_edges > len(scans)  # more than one neighbour per scan
+        # the second lap revisits the first: the tracking sweep ties them, pass or not
+        assert m.sweep_edges > 10, m.sweep_edges
     assert errs[True] <= errs[False] * 1.05 + 0.005, errs
     assert errs[True] < 0.1
+
+
+def test_finish_is_the_daemons_snapshot_pass():
+    """``Mapper.finish`` and the daemon's way (a job on a snapshot, applied later) are one
+    computation: the same poses and the same walls from the same run."""
+    w = get_world("loop")
+    t = np.arange(0, 1.3 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=5)
+    ms = []
+    for _ in range(2):
+        m = Mapper(MapperParams(), initial_pose=odo[0])
+        for s, o in zip(scans, odo, strict=True):
+            m.step(s.ranges, s.angle_min, s.angle_increment, o)
+        ms.append(m)
+    one, other = ms
+    before = other.poses.copy()
+    one.finish()
+    if other.loops:
+        other.optimize(final=True)
+    figures = other.apply_finish(other.finishing_job(sweep=True).run())
+    assert figures["edges"] > 0 and figures["max_shift_m"] > 0
+    assert np.abs(other.poses - before).max() > 1e-3  # the pass did move the run
+    np.testing.assert_allclose(one.poses, other.poses, atol=1e-9)
+    np.testing.assert_allclose(one.map.a, other.map.a, atol=1e-9)
+    assert one.adjusted == other.adjusted and one.adjusted["lines"] > 0
