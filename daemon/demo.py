@@ -275,7 +275,8 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
                 next_report += 5.0
                 st = request(sock, "status")
                 x, y, th = st["pose"]
-                devs = " ".join(f"{d['name']}:{d['state'][:4]}" for d in st["devices"])
+                devs = " ".join(f"{d['name']}:{'ok' if d['state'] == 'running' else d['state']}"
+                                for d in st["devices"])
                 progress(f"[{time.monotonic() - t0:5.1f}/{duration:.0f} s] pose "
                          f"({x:6.2f}, {y:6.2f}, {math.degrees(th):5.0f} deg)  "
                          f"{st['map']['segments']:4d} segments  {st['map']['planes']:3d} "
