@@ -168,6 +168,7 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
                          3 * n + 2 * line, 3 * n + 2 * line + 1]).ravel(),
         np.column_stack([3 * node + 2, 3 * n + 2 * line]).ravel()])
     wr = np.ones(K)
+    edges = graph.edge_arrays()
     for it in range(P.iterations):
         th, ph = X[node, 2], phi[line]
         al = ph - th                       # the line's normal angle in the laser frame
@@ -191,7 +192,7 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
         W = np.concatenate([w1 * wr, w2 * wr])
         H = (J.T @ sp.diags(W) @ J).tocsc()
         g = J.T @ (W * np.concatenate([e1, e2]))
-        Hg, gg, _ = graph.normal_equations(X, ROBUST_SCALE)
+        Hg, gg, _ = graph.normal_equations(X, ROBUST_SCALE, edges)
         Hg = sp.block_diag([Hg, sp.csc_matrix((2 * L, 2 * L))])
         H = H + P.graph_weight * Hg + hold + damp
         g[:3 * n] += P.graph_weight * gg

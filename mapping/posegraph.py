@@ -27,9 +27,10 @@ ROBUST_SCALE = 3.0
 # scans of every lap: the factor fills in (18 000 nodes, 600 000 neighbour edges: no SuperLU
 # solve in 10 min) while CG converges in under a hundred steps (1.4 s, 320 MB)
 DIRECT_MAX = 9000
-CG_ITERATIONS = 400
+# the same graph before its neighbour pass (the chain and its closures, 560 000 non-zeros)
+# needs ~600 steps (2 s); SuperLU takes 11 s there, so CG is given that many and more
+CG_ITERATIONS = 1500
 CG_TOLERANCE = 1e-9
-EDGE_CHUNK = 50_000   # edges per block when the normal equations are assembled
 
 
 def solve_normal(H: sp.spmatrix, b: np.ndarray, blocks: int) -> np.ndarray:
@@ -84,6 +85,32 @@ def _pcg(A: sp.csr_matrix, b: np.ndarray, M) -> tuple[np.ndarray, bool]:
     return x, bool(np.linalg.norm(r) <= stop)
 
 
+@dataclass(frozen=True)
+class EdgeArrays:
+    """A graph's edges as arrays: (k,) node indices i, j, (k, 3) measurements, (k, 3, 3)
+    information, (k,) robust (loop) flags."""
+
+    i: np.ndarray
+    j: np.ndarray
+    z: np.ndarray
+    info: np.ndarray
+    robust: np.ndarray
+    _layouts: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def layout(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Where the edges' 3x3 blocks go in the (3n, 3n) normal matrix, the same at every
+        iteration: for the blocks (i,i), (j,j), (i,j), (j,i) of every edge, in that order,
+        the index of the place they are summed into; the places' columns and row pointers
+        (BSR, by block); their number."""
+        if n not in self._layouts:
+            keys = np.concatenate([self.i * (n + 1), self.j * (n + 1), self.i * n + self.j,
+                                   self.j * n + self.i])
+            u, inv = np.unique(keys, return_inverse=True)
+            rows, cols = np.divmod(u, n)
+            self._layouts[n] = (inv, cols, np.searchsorted(rows, np.arange(n + 1)), len(u))
+        return self._layouts[n]
+
+
 @dataclass
 class PoseGraph:
     poses: list = field(default_factory=list)          # (3,) arrays
@@ -104,25 +131,35 @@ class PoseGraph:
         self.info.append(np.asarray(info, dtype=float))
         self.loop.append(loop)
 
+    def edge_arrays(self) -> EdgeArrays:
+        """The edge lists as arrays, once per solve rather than once per iteration (a long
+        run's 600 000 edges take a second to convert)."""
+        return EdgeArrays(np.array(self.ei, int), np.array(self.ej, int),
+                          np.array(self.z, float).reshape(-1, 3),
+                          np.array(self.info, float).reshape(-1, 3, 3),
+                          np.array(self.loop, bool))
+
     def residuals(self, X: np.ndarray | None = None) -> np.ndarray:
         X = np.array(self.poses) if X is None else X
-        i, j = np.array(self.ei), np.array(self.ej)
-        e = relative(X[i], X[j]) - np.array(self.z)
+        E = self.edge_arrays()
+        e = relative(X[E.i], X[E.j]) - E.z
         e[:, 2] = wrap(e[:, 2])
         return e
 
-    def normal_equations(self, X: np.ndarray, robust_scale: float
-                         ) -> tuple[sp.csc_matrix, np.ndarray, float]:
+    def normal_equations(self, X: np.ndarray, robust_scale: float,
+                         edges: EdgeArrays | None = None
+                         ) -> tuple[sp.csr_matrix, np.ndarray, float]:
         """Gauss-Newton normal equations of the edges at poses ``X`` (n, 3): the sparse
         (3n, 3n) information H, the gradient g (the step solves H dx = -g) and the weighted
-        chi^2; loop edges carry Cauchy weights of scale ``robust_scale``.  No node is held."""
+        chi^2; loop edges carry Cauchy weights of scale ``robust_scale``.  No node is held.
+        ``edges``: :meth:`edge_arrays`, when the caller solves repeatedly."""
         n = len(X)
-        i, j = np.array(self.ei, int), np.array(self.ej, int)
-        Z, Om = np.array(self.z).reshape(-1, 3), np.array(self.info).reshape(-1, 3, 3)
-        e = relative(X[i], X[j]) - Z
+        E = self.edge_arrays() if edges is None else edges
+        i, j = E.i, E.j
+        e = relative(X[i], X[j]) - E.z
         e[:, 2] = wrap(e[:, 2])
-        m2 = np.einsum("ki,kij,kj->k", e, Om, e)
-        w = np.where(np.array(self.loop, bool), 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
+        m2 = np.einsum("ki,kij,kj->k", e, E.info, e)
+        w = np.where(E.robust, 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
         c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
         d = X[j, :2] - X[i, :2]
         A = np.zeros((len(i), 3, 3))   # de/dx_i
@@ -135,26 +172,25 @@ class PoseGraph:
         B[:, 0, 0], B[:, 0, 1] = c, s
         B[:, 1, 0], B[:, 1, 1] = -s, c
         B[:, 2, 2] = 1.0
-        Wo = Om * w[:, None, None]
+        Wo = E.info * w[:, None, None]
         AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
+        Hij = AtW @ B
+        # 3x3 blocks: each edge's two diagonal blocks, its coupling block and that block's
+        # transpose, summed where they share a place (:meth:`EdgeArrays.layout`)
+        k = len(i)
+        inv, cols, indptr, nb = E.layout(n)
+        data = np.zeros((nb, 9))
+        for part, M in enumerate((AtW @ A, BtW @ B, Hij, np.swapaxes(Hij, 1, 2))):
+            at = inv[part * k:(part + 1) * k]
+            M = M.reshape(k, 9)
+            for q in range(9):
+                data[:, q] += np.bincount(at, M[:, q], nb)
+        H = sp.bsr_matrix((data.reshape(-1, 3, 3), cols, indptr), shape=(3 * n,) * 2).tocsr()
         r3 = np.arange(3)
-        H = sp.csc_matrix((3 * n,) * 2)
-        # assembled by chunks of edges: a long run's 600 000 edges at once would need
-        # gigabytes of triplets
-        for k0 in range(0, len(i), EDGE_CHUNK):
-            k = slice(k0, k0 + EDGE_CHUNK)
-            rows, cols, vals = [], [], []
-            for bi, bj, M in [(i[k], i[k], AtW[k] @ A[k]), (i[k], j[k], AtW[k] @ B[k]),
-                              (j[k], i[k], BtW[k] @ A[k]), (j[k], j[k], BtW[k] @ B[k])]:
-                rows.append((3 * bi[:, None, None] + r3[None, :, None]).repeat(3, 2).ravel())
-                cols.append((3 * bj[:, None, None] + r3[None, None, :]).repeat(3, 1).ravel())
-                vals.append(M.ravel())
-            H = H + sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
-                                                          np.concatenate(cols))),
-                                  shape=(3 * n,) * 2)
-        g = np.zeros(3 * n)
-        np.add.at(g, 3 * i[:, None] + r3, np.einsum("kij,kj->ki", AtW, e))
-        np.add.at(g, 3 * j[:, None] + r3, np.einsum("kij,kj->ki", BtW, e))
+        g = (np.bincount((3 * i[:, None] + r3).ravel(),
+                         np.einsum("kij,kj->ki", AtW, e).ravel(), 3 * n)
+             + np.bincount((3 * j[:, None] + r3).ravel(),
+                           np.einsum("kij,kj->ki", BtW, e).ravel(), 3 * n))
         return H, g, float(np.sum(w * m2))
 
     def optimize(self, iterations: int = 10, robust_scale: float = ROBUST_SCALE,
@@ -170,11 +206,12 @@ class PoseGraph:
             return self._optimize_window(iterations, robust_scale, fixed, free_from)
         X = np.array(self.poses)
         hold = hold_nodes(fixed, n)
+        E = self.edge_arrays()
         chi2 = 0.0
         for it in range(iterations):
             # graduated: the first passes trust every closure (a true one can disagree by
             # metres before the graph has moved), then the Cauchy weights sort out the rest
-            H, g, chi2 = self.normal_equations(X, robust_scale * (30.0 if it < 2 else 1.0))
+            H, g, chi2 = self.normal_equations(X, robust_scale * (30.0 if it < 2 else 1.0), E)
             dx = solve_normal(H + hold, -g, n).reshape(n, 3)
             X = X + dx
             X[:, 2] = wrap(X[:, 2])

@@ -581,11 +581,12 @@ def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams,
     nodes' order), and each node with its ``previous`` predecessors; nodes with fewer than
     two segments left out."""
     n = len(X)
-    tree = cKDTree(X[:, :2])
     # by chunks of later nodes: a robot that has driven the same rooms for hours has
-    # thousands of earlier scans near each one, and all the pairs at once would not fit
-    near = [_spread_pairs(tree, X, np.arange(c0, min(c0 + chunk, n)), NP)
-            for c0 in range(0, n, chunk)] or [np.zeros((0, 2), int)]
+    # thousands of earlier scans near each one, and all the pairs at once would not fit;
+    # each chunk searches only the nodes up to its own (pairs look back)
+    near = [_spread_pairs(cKDTree(X[:c1, :2]), X, np.arange(c0, c1), NP)
+            for c0, c1 in ((c, min(c + chunk, n)) for c in range(0, n, chunk))
+            ] or [np.zeros((0, 2), int)]
     near = np.concatenate(near)
     i = np.arange(n)
     seq = [np.column_stack([i[k:] - k, i[k:]]) for k in range(1, NP.previous + 1)]

@@ -136,6 +136,43 @@ def test_ate_is_zero_after_a_rigid_motion_and_rpe_sees_steps():
     assert rpe(bumped, ref)["rpe_trans_m"] > 0.01
 
 
+def test_normal_equations_are_the_edges_jacobians_summed():
+    """H = sum J^T W J and g = sum J^T W e over the edges, J by finite differences of the
+    residual: every 3x3 block where it belongs, repeated edges between two nodes added."""
+    rng = np.random.default_rng(7)
+    n = 6
+    X = rng.normal(0, 2, (n, 3))
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 4), (4, 0), (2, 5), (2, 5), (5, 1)]
+    info = []
+    for _ in pairs:
+        Q = rng.normal(size=(3, 3))
+        info.append(Q @ Q.T + np.eye(3))
+    loop = [k >= 5 for k in range(len(pairs))]
+    g = PoseGraph(list(X), [p[0] for p in pairs], [p[1] for p in pairs],
+                  [rng.normal(0, 1, 3) for _ in pairs], info, loop)
+    scale = 2.0
+    H, grad, chi2 = g.normal_equations(X, scale)
+    e0 = g.residuals(X)
+    H_ref, g_ref, chi2_ref = np.zeros((3 * n, 3 * n)), np.zeros(3 * n), 0.0
+    for k in range(len(pairs)):
+        J = np.zeros((3, 3 * n))
+        for v in range(3 * n):
+            dX = X.copy()
+            dX.flat[v] += 1e-6
+            d = g.residuals(dX)[k] - e0[k]
+            d[2] = wrap(d[2])
+            J[:, v] = d / 1e-6
+        m2 = e0[k] @ info[k] @ e0[k]
+        w = 1.0 / (1.0 + m2 / scale ** 2) if loop[k] else 1.0
+        H_ref += w * J.T @ info[k] @ J
+        g_ref += w * J.T @ info[k] @ e0[k]
+        chi2_ref += w * m2
+    assert np.allclose(H.toarray(), H_ref, atol=1e-4 * np.abs(H_ref).max())
+    assert np.allclose(grad, g_ref, atol=1e-4 * np.abs(g_ref).max())
+    assert chi2 == pytest.approx(chi2_ref)
+    assert np.allclose(H.toarray(), H.toarray().T)
+
+
 @pytest.mark.parametrize("cg_iterations", [400, 1])
 def test_large_normal_equations_go_to_conjugate_gradients(monkeypatch, cg_iterations):
     """Above DIRECT_MAX the step comes from block-Jacobi CG (or, when CG does not converge,
