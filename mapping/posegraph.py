@@ -204,16 +204,29 @@ class PoseGraph:
             return {"iterations": 0, "chi2": 0.0}
         if free_from > 0:
             return self._optimize_window(iterations, robust_scale, fixed, free_from)
+        return self._gauss_newton(iterations, robust_scale, fixed)
+
+    def _gauss_newton(self, iterations: int, robust_scale: float, fixed: int | list[int],
+                      known: int = 0) -> dict:
+        """:meth:`optimize`'s iterations.  The first ``known`` nodes are no unknowns: they
+        stay where they are, and their edges to the others act as priors on those (a
+        window's boundary may be thousands of nodes, which a stiff prior per node would
+        leave in the system, and CG does not converge on that)."""
+        n = len(self.poses)
         X = np.array(self.poses)
-        hold = hold_nodes(fixed, n)
+        m = n - known
+        fx = [int(f) - known for f in np.atleast_1d(fixed) if int(f) >= known]
+        hold = hold_nodes(fx, m) if fx else None
         E = self.edge_arrays()
         chi2 = 0.0
         for it in range(iterations):
             # graduated: the first passes trust every closure (a true one can disagree by
             # metres before the graph has moved), then the Cauchy weights sort out the rest
             H, g, chi2 = self.normal_equations(X, robust_scale * (30.0 if it < 2 else 1.0), E)
-            dx = solve_normal(H + hold, -g, n).reshape(n, 3)
-            X = X + dx
+            if known:
+                H, g = H[3 * known:, 3 * known:], g[3 * known:]
+            dx = solve_normal(H if hold is None else H + hold, -g, m).reshape(m, 3)
+            X[known:] += dx
             X[:, 2] = wrap(X[:, 2])
             if it >= 2 and np.max(np.abs(dx)) < 1e-5:
                 break
@@ -228,14 +241,15 @@ class PoseGraph:
             return {"iterations": 0, "chi2": 0.0, "nodes": 0}
         nodes = np.union1d(np.unique(np.concatenate([ei[sel], ej[sel]])),
                            np.arange(free_from, len(self.poses)))
+        # the nodes in ascending order: the held ones (older than the window) come first
         local = {int(k): m for m, k in enumerate(nodes)}
-        held = [local[int(k)] for k in nodes if k < free_from]
-        held += [local[int(k)] for k in np.atleast_1d(fixed) if int(k) in local]
+        known = int(np.sum(nodes < free_from))
+        fx = [local[int(k)] for k in np.atleast_1d(fixed) if int(k) in local and k >= free_from]
         sub = PoseGraph([self.poses[int(k)] for k in nodes],
                         [local[int(k)] for k in ei[sel]], [local[int(k)] for k in ej[sel]],
                         [self.z[e] for e in sel], [self.info[e] for e in sel],
                         [self.loop[e] for e in sel])
-        got = sub.optimize(iterations, robust_scale, held or [0])
+        got = sub._gauss_newton(iterations, robust_scale, fx or ([] if known else [0]), known)
         for m, k in enumerate(nodes):
             if k >= free_from:
                 self.poses[int(k)] = sub.poses[m]
