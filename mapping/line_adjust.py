@@ -159,9 +159,10 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
     w1 = 1.0 / (P.sigma ** 2 / obs.n + P.floor[0] ** 2)
     w2 = 1.0 / (P.sigma ** 2 / spread + P.floor[1] ** 2)
     nv = 3 * n + 2 * L
-    hold = hold_nodes(fixed, n, nv)
-    # a whisper of damping on the lines: a wall seen edge-on from one place stays defined
-    damp = sp.diags(np.concatenate([np.zeros(3 * n), np.full(2 * L, 1e-6)]), format="csc")
+    # the held node(s), and a whisper of damping on the lines: a wall seen edge-on from one
+    # place stays defined
+    hold = hold_nodes(fixed, n, nv) + sp.diags(
+        np.concatenate([np.zeros(3 * n), np.full(2 * L, 1e-6)]), format="csc")
     rows = np.concatenate([np.repeat(np.arange(K), 5), np.repeat(np.arange(K, 2 * K), 2)])
     cols = np.concatenate([
         np.column_stack([3 * node, 3 * node + 1, 3 * node + 2,
@@ -193,8 +194,11 @@ def adjust(poses: np.ndarray, graph: PoseGraph, obs: LineObservations,
         H = (J.T @ sp.diags(W) @ J).tocsc()
         g = J.T @ (W * np.concatenate([e1, e2]))
         Hg, gg, _ = graph.normal_equations(X, ROBUST_SCALE, edges)
-        Hg = sp.block_diag([Hg, sp.csc_matrix((2 * L, 2 * L))])
-        H = H + P.graph_weight * Hg + hold + damp
+        # in place: at the daemon's scale Hg is 10^7 entries, and every copy costs 130 MB
+        Hg.data *= P.graph_weight
+        Hg.resize((nv, nv))
+        H = Hg + H + hold
+        del Hg
         g[:3 * n] += P.graph_weight * gg
         dx = solve_normal(H, -g, n)
         X += dx[:3 * n].reshape(n, 3)

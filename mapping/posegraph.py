@@ -174,23 +174,31 @@ class PoseGraph:
         B[:, 2, 2] = 1.0
         Wo = E.info * w[:, None, None]
         AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
-        Hij = AtW @ B
-        # 3x3 blocks: each edge's two diagonal blocks, its coupling block and that block's
-        # transpose, summed where they share a place (:meth:`EdgeArrays.layout`)
-        k = len(i)
-        inv, cols, indptr, nb = E.layout(n)
-        data = np.zeros((nb, 9))
-        for part, M in enumerate((AtW @ A, BtW @ B, Hij, np.swapaxes(Hij, 1, 2))):
-            at = inv[part * k:(part + 1) * k]
-            M = M.reshape(k, 9)
-            for q in range(9):
-                data[:, q] += np.bincount(at, M[:, q], nb)
-        H = sp.bsr_matrix((data.reshape(-1, 3, 3), cols, indptr), shape=(3 * n,) * 2).tocsr()
+        del Wo
         r3 = np.arange(3)
         g = (np.bincount((3 * i[:, None] + r3).ravel(),
                          np.einsum("kij,kj->ki", AtW, e).ravel(), 3 * n)
              + np.bincount((3 * j[:, None] + r3).ravel(),
                            np.einsum("kij,kj->ki", BtW, e).ravel(), 3 * n))
+        # 3x3 blocks: each edge's two diagonal blocks, its coupling block and that block's
+        # transpose, summed where they share a place (:meth:`EdgeArrays.layout`); made one
+        # at a time (at 600 000 edges each is 40 MB)
+        k = len(i)
+        inv, cols, indptr, nb = E.layout(n)
+        data = np.zeros((nb, 9))
+
+        def add(part: int, M: np.ndarray) -> None:
+            at, M = inv[part * k:(part + 1) * k], M.reshape(k, 9)
+            for q in range(9):
+                data[:, q] += np.bincount(at, M[:, q], nb)
+
+        add(0, AtW @ A)
+        add(1, BtW @ B)
+        Hij = AtW @ B
+        add(2, Hij)
+        add(3, np.swapaxes(Hij, 1, 2))
+        del A, B, AtW, BtW, Hij
+        H = sp.bsr_matrix((data.reshape(-1, 3, 3), cols, indptr), shape=(3 * n,) * 2).tocsr()
         return H, g, float(np.sum(w * m2))
 
     def optimize(self, iterations: int = 10, robust_scale: float = ROBUST_SCALE,
@@ -225,7 +233,10 @@ class PoseGraph:
             H, g, chi2 = self.normal_equations(X, robust_scale * (30.0 if it < 2 else 1.0), E)
             if known:
                 H, g = H[3 * known:, 3 * known:], g[3 * known:]
-            dx = solve_normal(H if hold is None else H + hold, -g, m).reshape(m, 3)
+            if hold is not None:
+                H = H + hold   # rebound: the matrix without the prior is freed before the solve
+            dx = solve_normal(H, -g, m).reshape(m, 3)
+            del H
             X[known:] += dx
             X[:, 2] = wrap(X[:, 2])
             if it >= 2 and np.max(np.abs(dx)) < 1e-5:

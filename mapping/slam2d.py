@@ -575,15 +575,16 @@ def _spread_pairs(tree: cKDTree, X: np.ndarray, later: np.ndarray,
 
 
 def neighbour_pairs(X: np.ndarray, scans: list, NP: NeighbourParams,
-                    chunk: int = 2000) -> np.ndarray:
+                    chunk: int = 250) -> np.ndarray:
     """(p, 2) node pairs j < i for the neighbour pass: positions ``X`` within ``radius``
     (for each later node at most ``max_pairs`` of them, evenly spread over the earlier
     nodes' order), and each node with its ``previous`` predecessors; nodes with fewer than
     two segments left out."""
     n = len(X)
     # by chunks of later nodes: a robot that has driven the same rooms for hours has
-    # thousands of earlier scans near each one, and all the pairs at once would not fit;
-    # each chunk searches only the nodes up to its own (pairs look back)
+    # thousands of earlier scans near each one, and all the pairs at once would not fit
+    # (245 laps of the simulated loop, first round: peak 690 MB by 2 000 nodes, 97 MB by
+    # 250, and faster); each chunk searches only the nodes up to its own (pairs look back)
     near = [_spread_pairs(cKDTree(X[:c1, :2]), X, np.arange(c0, c1), NP)
             for c0, c1 in ((c, min(c + chunk, n)) for c in range(0, n, chunk))
             ] or [np.zeros((0, 2), int)]
