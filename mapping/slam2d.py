@@ -468,17 +468,7 @@ class Mapper:
         computation the daemon runs on a snapshot; returns the laser poses."""
         if self.params.loop.enabled and self.loops:
             self.optimize(final=True)
-        if len(self.scans) == self.count:
-            self.apply_finish(self.finishing_job(sweep=True).run())
-            return self.poses
-        AP = self.params.adjust  # no per-scan segments kept: the line adjustment alone
-        if AP.enabled:
-            X0 = self.poses
-            obs = associate(Contributions.of(self.map), X0, AP)
-            X, self.adjusted = adjust(X0, self.graph, obs, self.anchors, AP)
-            self.graph.poses = list(X)
-            refresh(self.map, X)
-            dedupe(self.map, self.params.map)
+        self.apply_finish(self._job(None, sweep=True).run())
         return self.poses
 
     def neighbour_pairs(self, NP: NeighbourParams | None = None) -> np.ndarray:
@@ -494,15 +484,22 @@ class Mapper:
         daemon) gets the pass this way without stopping its scans (``max_pairs`` keeps it
         linear in the nodes however long the robot runs).  ``sweep`` adds the tracking
         closures (:func:`sweep_matches`) before the neighbour rounds."""
-        g = self.graph
         if len(self.scans) != self.count:
             raise ValueError("this mapper keeps no per-scan segments (keep_scans)")
+        return self._job(NP, sweep)
+
+    def _job(self, NP: NeighbourParams | None, sweep: bool) -> FinishJob:
+        """:meth:`finishing_job`; without kept scans (``keep_scans`` off) a job of the line
+        adjustment alone."""
+        g = self.graph
+        kept = len(self.scans) == self.count
         copy = PoseGraph([p.copy() for p in g.poses], list(g.ei), list(g.ej), list(g.z),
                          list(g.info), list(g.loop))
         LP, AP = self.params.loop, self.params.adjust
-        do_sweep = sweep and LP.enabled and LP.sweep_every > 0
+        do_sweep = kept and sweep and LP.enabled and LP.sweep_every > 0
         NP = NP or self.params.neighbours
-        return FinishJob(NP if NP.enabled else replace(NP, rounds=0), copy, list(self.scans),
+        return FinishJob(NP if NP.enabled and kept else replace(NP, rounds=0), copy,
+                         list(self.scans) if kept else [],
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, LP if do_sweep else None,
                          np.array(self.travel, float), source=self,

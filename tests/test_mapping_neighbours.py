@@ -129,3 +129,25 @@ def test_finish_is_the_daemons_snapshot_pass():
     np.testing.assert_allclose(one.poses, other.poses, atol=1e-9)
     np.testing.assert_allclose(one.map.a, other.map.a, atol=1e-9)
     assert one.adjusted == other.adjusted and one.adjusted["lines"] > 0
+
+
+def test_finish_without_kept_scans_still_adjusts_the_lines():
+    """No neighbour pass and no sweep: no per-scan segments are kept, and the finishing
+    pass is the line adjustment alone."""
+    from dataclasses import replace
+
+    w = get_world("loop")
+    t = np.arange(0, 0.6 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    P = MapperParams(neighbours=NeighbourParams(enabled=False))
+    P = replace(P, loop=replace(P.loop, sweep_every=0))
+    m = Mapper(P, initial_pose=truth[0])
+    for k, p in enumerate(truth):
+        s = scan(w, p, n=180, sigma=0.01, seed=k)
+        m.step(s.ranges, s.angle_min, s.angle_increment, p)
+    assert not m.scans and not m.keep_scans
+    before = m.poses.copy()
+    m.finish()
+    assert m.adjusted["lines"] > 0 and m.adjusted["iterations"] > 0
+    assert m.sweep_edges == 0 and m.neighbour_edges == 0
+    assert np.abs(m.poses - before).max() > 0
