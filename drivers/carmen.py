@@ -172,3 +172,36 @@ def read_scans(path: str | Path, *, lenient: bool = False,
     return [m for m in read_carmen(path, lenient=lenient, stats=stats,
                                    types=("FLASER", "ROBOTLASER1"))
             if isinstance(m, LaserScan)]
+
+
+# Written for "no return": the 80 m mode's saturation value, which readers treat as such.
+NO_RETURN = 81.91
+
+
+def flaser_line(scan: LaserScan) -> str:
+    """One old-format FLASER line (with its newline) for ``scan``: ranges in metres (NaN as
+    :data:`NO_RETURN`), the reference and odometry poses (``pose_ref`` / ``pose_odom``, each
+    standing in for the other when only one is set) and the stamp as both timestamps.
+    ValueError when the scan does not span 180° from -90° as FLASER implies, or has no pose."""
+    n = len(scan.ranges)
+    a0, inc = beam_geometry(n)
+    if abs(scan.angle_min - a0) > 1e-6 or abs(scan.angle_increment - inc) > 1e-9:
+        raise ValueError(f"FLASER implies {n} beams from -90 deg every {math.degrees(inc):g} "
+                         f"deg; this scan starts at {math.degrees(scan.angle_min):g} deg "
+                         f"every {math.degrees(scan.angle_increment):g} deg")
+    ref = scan.pose_ref if scan.pose_ref is not None else scan.pose_odom
+    odo = scan.pose_odom if scan.pose_odom is not None else scan.pose_ref
+    if ref is None:
+        raise ValueError("FLASER needs a pose: the scan has neither pose_ref nor pose_odom")
+    r = np.where(np.isfinite(scan.ranges), scan.ranges, NO_RETURN)
+    t = f"{scan.stamp_ns * 1e-9:.6f}"
+    poses = " ".join(f"{v:.6f}" for v in (*ref, *odo))
+    return f"FLASER {n} {' '.join(f'{v:.3f}' for v in r)} {poses} {t} cgamap {t}\n"
+
+
+def write_carmen(path: str | Path, scans) -> int:
+    """Write ``scans`` as an old-format CARMEN log (one FLASER line each, after a format
+    comment), to be read back by :func:`read_carmen`; returns the number of lines written."""
+    lines = ["# message formats defined: FLASER\n"] + [flaser_line(s) for s in scans]
+    Path(path).write_text("".join(lines), encoding="ascii")
+    return len(lines) - 1

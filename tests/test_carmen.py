@@ -83,3 +83,38 @@ def test_intel_log():
     assert np.mean(np.diff(stamps) > 0) > 0.99
     assert stamps[0] == 32_906_800_000
     assert scans[0].pose_ref == pytest.approx((0.600266, -0.0320327, -0.354665))
+
+
+def _scan(n: int = 180, **kw) -> LaserScan:
+    a0, inc = beam_geometry(n)
+    r = np.linspace(0.5, 30.0, n)
+    r[3] = np.nan
+    base = dict(seq=0, stamp_ns=12_500_000_000, angle_min=a0, angle_increment=inc, ranges=r,
+                pose_ref=(1.0, -2.0, 0.5), pose_odom=(1.1, -2.1, 0.6))
+    return LaserScan(**(base | kw))
+
+
+@pytest.mark.parametrize("n", [180, 181, 361])
+def test_written_log_reads_back(tmp_path, n):
+    from cgamap.drivers.carmen import write_carmen
+
+    scans = [_scan(n), _scan(n, seq=1, stamp_ns=13_000_000_000, pose_odom=None)]
+    assert write_carmen(tmp_path / "w.log", scans) == 2
+    back = read_scans(tmp_path / "w.log")
+    assert len(back) == 2
+    assert back[0].angle_min == pytest.approx(scans[0].angle_min)
+    assert back[0].angle_increment == pytest.approx(scans[0].angle_increment)
+    np.testing.assert_allclose(back[0].ranges, scans[0].ranges, atol=5e-4)  # NaN where NaN
+    assert back[0].pose_ref == pytest.approx((1.0, -2.0, 0.5))
+    assert back[0].pose_odom == pytest.approx((1.1, -2.1, 0.6))
+    assert back[1].pose_odom == pytest.approx((1.0, -2.0, 0.5))  # the reference stands in
+    assert back[1].stamp_ns == 13_000_000_000
+
+
+def test_writer_refuses_what_flaser_cannot_say():
+    from cgamap.drivers.carmen import flaser_line
+
+    with pytest.raises(ValueError, match="FLASER implies 180 beams"):
+        flaser_line(_scan(angle_min=-1.0))
+    with pytest.raises(ValueError, match="neither pose_ref nor pose_odom"):
+        flaser_line(_scan(pose_ref=None, pose_odom=None))

@@ -72,8 +72,18 @@ def test_empty_and_all_nan():
     assert len(seg) == 0
 
 
-def test_utm_defaults_differ():
-    assert SegmentParams.for_utm().range_max > SegmentParams.for_lms().range_max
+def test_range_limit_is_the_sensors_reach():
+    # SICK LMS2xx 80 m mode (CARMEN logs saturate at 81.83 / 81.91 m), Hokuyo UTM-30LX 30 m
+    assert SegmentParams.for_lms().range_max == 80.0
+    assert SegmentParams.for_utm().range_max == 30.0
+
+
+def test_far_wall_kept_within_the_sensors_reach():
+    # a wall 40 m ahead, seen at 0.25 deg: a segment by default, none when limited to 25 m
+    ang = np.deg2rad(np.arange(-10.0, 10.0, 0.25))
+    r = 40.0 / np.cos(ang)
+    assert len(extract_segments(r, ang[0], ang[1] - ang[0])) == 1
+    assert len(extract_segments(r, ang[0], ang[1] - ang[0], SegmentParams(range_max=25.0))) == 0
 
 
 def _args(s):

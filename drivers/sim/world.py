@@ -213,11 +213,73 @@ def _loop() -> World:
     return World("loop", walls, way, speed=0.8)
 
 
-WORLDS = {"corridor": _corridor, "room": _room, "loop": _loop}
+def _octagon(cx: float, cy: float, r: float, **kw) -> list[Wall]:
+    a = np.linspace(0.0, 2.0 * np.pi, 9)[:-1]
+    return _polyline([(cx + r * np.cos(t), cy + r * np.sin(t)) for t in a], closed=True, **kw)
+
+
+def _hall() -> World:
+    # A 60 m x 36 m exhibition hall: two rows of pillars, booths; most walls beyond 25 m.
+    walls = _rect(0.0, 0.0, 60.0, 36.0)
+    for x in range(10, 60, 10):
+        for y in (12.0, 24.0):
+            walls += _rect(x - 0.4, y - 0.4, x + 0.4, y + 0.4, kind="pillar")
+    for x, y in [(8, 4), (20, 6), (33, 3), (45, 7), (12, 26.5), (38, 26.5), (48, 33.5)]:
+        walls += _rect(x, y, x + 3.0, y + 2.0, kind="furniture", height=2.0)  # booths
+    way = np.array([[4, 18], [30, 18], [56, 18], [56, 31], [30, 31], [4, 31]], float)
+    return World("hall", walls, way, speed=0.5)
+
+
+def _campus() -> World:
+    # Six buildings round a 75 m x 24 m quad with trees (a few beams each, no lines): the
+    # facades are 10-40 m from the path.
+    rng = np.random.default_rng(7)
+    walls = []
+    for box in [(-30, 25, 5, 40), (15, 25, 45, 38), (50, -20, 65, 30), (-30, -40, 0, -25),
+                (10, -42, 45, -28), (-50, -20, -38, 15)]:
+        walls += _rect(*map(float, box), height=10.0)
+    for _ in range(40):
+        x, y = rng.uniform(-35.0, 45.0), rng.uniform(-20.0, 18.0)
+        if min(abs(y + 12), abs(y - 12)) > 2.5 and min(abs(x + 30), abs(x - 42)) > 2.5:
+            walls += _octagon(x, y, rng.uniform(0.15, 0.4), kind="tree", height=4.0)
+    way = np.array([[-30, -12], [5, -12], [42, -12], [42, 12], [5, 12], [-30, 12]], float)
+    return World("campus", walls, way, speed=1.0)
+
+
+def _long_corridor() -> World:
+    # A 150 m x 4 m corridor, doors (recesses) at irregular spacing on both sides, driven
+    # there and back: along it only the recesses' sides fix the position.
+    rng = np.random.default_rng(11)
+    length = 150.0
+
+    def side(y: float, sgn: float) -> list[Wall]:
+        pts = [(0.0, y)]
+        x = rng.uniform(2.0, 5.0)
+        while x < length - 4.0:
+            w, d = rng.uniform(0.9, 1.6), rng.uniform(0.15, 0.5)
+            pts += [(x, y), (x, y + sgn * d), (x + w, y + sgn * d), (x + w, y)]
+            x += w + rng.uniform(2.0, 9.0)
+        return _polyline(pts + [(length, y)])
+
+    walls = side(-2.0, -1.0) + side(2.0, 1.0)
+    walls += [Wall(0.0, -2.0, 0.0, 2.0), Wall(length, -2.0, length, 2.0)]
+    # straight legs 1.25 m off the axis, a half circle at each end
+    a = np.deg2rad(np.arange(-60.0, 61.0, 30.0))
+    east = np.column_stack([147.0 + 1.25 * np.cos(a), 1.25 * np.sin(a)])
+    west = np.column_stack([3.0 - 1.25 * np.cos(a), -1.25 * np.sin(a)])
+    legs = np.arange(10.0, 141.0, 10.0)
+    way = np.vstack([np.column_stack([legs, np.full_like(legs, -1.25)]), [[147.0, -1.25]], east,
+                     [[147.0, 1.25]], np.column_stack([legs[::-1], np.full_like(legs, 1.25)]),
+                     [[3.0, 1.25]], west, [[3.0, -1.25]]])
+    return World("long_corridor", walls, way, speed=0.8)
+
+
+WORLDS = {"corridor": _corridor, "room": _room, "loop": _loop, "hall": _hall,
+          "campus": _campus, "long_corridor": _long_corridor}
 
 
 def get_world(name: str) -> World:
-    """A fresh copy of the named world ("corridor", "room", "loop")."""
+    """A fresh copy of the named world (:data:`WORLDS`)."""
     try:
         return WORLDS[name]()
     except KeyError:
