@@ -33,6 +33,12 @@ class CorrectionParams:
     prior_rot_per_m: float = 0.03
     sigma_point: float = 0.06          # point-to-line noise (m), map error included
     converged_gate: float = 0.12       # stop early once the gate is this tight and still
+    # beyond the ends of the segment it matched, a point is compared with that segment's line
+    # extrapolated, whose direction a segment l long fixes only to about extrapolation / l
+    # rad: the point's variance grows with its distance past the end (0: off).  Scan-to-scan
+    # matching needs it (:class:`~cgamap.mapping.slam2d.NeighbourParams`): a wall cut to a
+    # stub by the other scan's field of view otherwise tilts the pair by a degree
+    extrapolation: float = 0.0
 
 
 @dataclass
@@ -127,7 +133,14 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
             J[..., :2] = n
             J[..., 2] = n[..., 1] * rel[..., 0] - n[..., 0] * rel[..., 1]
             scale = max(gate / 3.0, 0.03)
-            w = np.where(use, wq / params.sigma_point ** 2 / (1.0 + (e / scale) ** 2), 0.0)
+            var = params.sigma_point ** 2
+            if params.extrapolation > 0:
+                half = index.half[rows, jm]
+                off = qg - index.centre[rows, jm]
+                along = off[..., 0] * n[..., 1] - off[..., 1] * n[..., 0]
+                past = np.maximum(np.abs(along) - half, 0.0)
+                var = var + (past * params.extrapolation / np.maximum(2.0 * half, 1e-3)) ** 2
+            w = np.where(use, wq / var / (1.0 + (e / scale) ** 2), 0.0)
             JwT = np.swapaxes(J * w[..., None], -1, -2)
             H = H0 + JwT @ J
             g += (JwT @ e[..., None])[..., 0]

@@ -214,3 +214,30 @@ def test_neighbour_pairs_are_the_same_in_any_chunking():
     assert np.array_equal(neighbour_pairs(X, scans, NP, chunk=37), whole)
     per_node = np.bincount(whole[:, 1], minlength=len(X))
     assert per_node.max() <= 8 + NP.previous
+
+
+def _stub_pair(extrapolation: float):
+    """Scan i sees two 4 m walls and the end wall; scan j (same pose) sees the upper wall
+    and the end wall whole but the lower one only as a 0.4 m stub, tilted 0.6 deg by
+    noise."""
+    from cgamap.mapping.correction import CorrectionParams, correct_batch
+    from cgamap.mapping.matching import LineIndex
+
+    src_a = np.array([[[0.0, -1.0], [4.0, 1.0], [4.0, -1.0]]])
+    src_b = np.array([[[4.0, -1.0], [0.0, 1.0], [4.0, 1.0]]])
+    tilt = np.deg2rad(0.6)
+    stub = 0.4 * np.array([np.cos(tilt), np.sin(tilt)])
+    dst_a = np.array([[[0.0, -1.0], [4.0, 1.0], [4.0, -1.0]]])
+    dst_b = np.array([[[0.0, -1.0] + stub, [0.0, 1.0], [4.0, 1.0]]])
+    P = CorrectionParams(gates=(0.3, 0.15, 0.08), angle_gates_deg=(6.0, 4.0, 3.0),
+                         extrapolation=extrapolation)
+    res = correct_batch(src_a, src_b, LineIndex.of(dst_a, dst_b), np.zeros((1, 3)), 0.5, P)
+    assert (res.matches[0] >= 0).all()
+    return np.rad2deg(res.pose[0, 2])
+
+
+def test_a_stub_extrapolated_over_metres_does_not_tilt_the_match():
+    # the stub's error, carried 4 m along the long wall, weighs as much as the whole upper
+    # wall unless points past the stub's end count with its direction's uncertainty
+    assert abs(_stub_pair(0.0)) > 0.1
+    assert abs(_stub_pair(0.1)) < 0.03
