@@ -92,6 +92,17 @@ def _odometry(scans) -> np.ndarray:
     return np.array(odo, dtype=float)
 
 
+def _mount(scans, odo: np.ndarray) -> np.ndarray | None:
+    """The laser's offset from the robot, when the log's laser poses are its odometry poses
+    moved by one (:func:`~cgamap.mapping.odometry.laser_mount`)."""
+    from cgamap.mapping.odometry import laser_mount
+
+    ref = [s.pose_ref for s in scans]
+    if any(r is None for r in ref) or any(s.pose_odom is None for s in scans):
+        return None
+    return laser_mount(odo, np.array(ref, float))
+
+
 def _read_relations(path: str) -> np.ndarray:
     from cgamap.mapping.evaluation import load_relations
 
@@ -128,7 +139,7 @@ def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.fileio import write_text_atomic
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
-    from cgamap.mapping.odometry import add_odometry_noise
+    from cgamap.mapping.odometry import add_odometry_noise, compose_pose2d
     from cgamap.mapping.offline import build_map
     from cgamap.mapping.render import export_occupancy, render_png
     from cgamap.mapping.slam2d import LoopParams, MapperParams
@@ -141,7 +152,12 @@ def run_build(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UsageError(f"--out: {out}: cannot create ({exc.strerror})") from None
     odo = _odometry(scans)
+    # CARMEN's odometry is the robot's; a laser off its centre moves differently when it
+    # turns.  The noise goes on the robot's increments, then the poses are the laser's
+    mount = _mount(scans, odo)
     odo = add_odometry_noise(odo, args.odom_noise, args.seed)
+    if mount is not None:
+        odo = compose_pose2d(odo, mount)
     params = MapperParams(loop=LoopParams(enabled=not args.no_loop_closure))
     res = build_map(scans, odo, params, _progress("map build", args.quiet))
     meta = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
@@ -157,6 +173,8 @@ def run_build(args: argparse.Namespace) -> int:
     write_text_atomic(out / "trajectory.csv", "t,x,y,theta\n" + rows)
     report = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
               "skipped_lines": st.skipped, **res.report}
+    if mount is not None:
+        report["laser_mount"] = [round(float(v), 5) for v in mount]
     if relations is not None:
         report["relations"] = _relations_report(relations, res.stamps, res.poses, scans, odo)
     write_text_atomic(out / "report.json", json.dumps(report, indent=2) + "\n")

@@ -9,8 +9,16 @@ Old CARMEN format (see ../shared/reference/lasers.md §4.3), one message per lin
                 fwd_safety side_safety turn_axis ipc_timestamp host logger_timestamp
 
 FLASER/RLASER carry no angles: 180° field of view, first beam at -pi/2, step pi/n for n = 180
-or 360, pi/(n-1) for n = 181 or 361 (DESIGN.md).  Ranges at or above the sensor maximum mean
-"no return" and become NaN.  ``stamp_ns`` is the line's ipc timestamp in ns.
+or 360, pi/(n-1) for n = 181 or 361 (DESIGN.md).  ROBOTLASER1 beam k is at start_angle +
+k * ang_res, as CARMEN and the tools that read its logs take it (the fov field is rounded and
+not always (n - 1) * ang_res: a 180-beam scan with fov pi would spread the beams 0.6 % too
+wide).  Ranges at or above the sensor maximum mean "no return" and become NaN.
+``stamp_ns`` is the line's ipc timestamp in ns.
+
+``pose_ref`` is the line's laser pose; ``pose_odom`` its odometry pose (FLASER odom_x ..,
+ROBOTLASER1 robot_x ..), which is the robot's: a laser mounted off the robot's centre is
+offset from it (``mapping.odometry.laser_odometry`` finds the offset and carries the
+odometry to the laser).
 """
 
 from __future__ import annotations
@@ -96,7 +104,7 @@ def _parse_robotlaser(tok: list[str], seq: int) -> LaserScan:
         raise ValueError("ROBOTLASER1 line too short")
     lx, ly, lth, rx, ry, rth = (float(v) for v in tok[k:k + 6])
     t = float(tok[k + 11])
-    inc = res if n <= 1 else fov / (n - 1)
+    inc = res if res > 0 or n <= 1 else fov / (n - 1)
     return LaserScan(
         seq=seq, stamp_ns=_stamp_ns(t), angle_min=start, angle_increment=inc,
         ranges=_ranges(ranges_raw, maxr), range_min=0.0, range_max=maxr,
@@ -199,9 +207,36 @@ def flaser_line(scan: LaserScan) -> str:
     return f"FLASER {n} {' '.join(f'{v:.3f}' for v in r)} {poses} {t} cgamap {t}\n"
 
 
-def write_carmen(path: str | Path, scans) -> int:
-    """Write ``scans`` as an old-format CARMEN log (one FLASER line each, after a format
-    comment), to be read back by :func:`read_carmen`; returns the number of lines written."""
-    lines = ["# message formats defined: FLASER\n"] + [flaser_line(s) for s in scans]
+def robotlaser_line(scan: LaserScan, robot_pose=None, max_range: float = NO_RETURN) -> str:
+    """One ROBOTLASER1 line (with its newline) for ``scan``: its own beam geometry, NaN
+    ranges as ``max_range`` (the line's maximum, so they read back as no return), no
+    remissions, ``pose_ref`` as the laser pose and ``robot_pose`` (default ``pose_odom``,
+    else the laser pose) as the robot's.  ValueError when the scan has no pose."""
+    laser = scan.pose_ref if scan.pose_ref is not None else scan.pose_odom
+    if laser is None:
+        raise ValueError("ROBOTLASER1 needs a pose: the scan has neither pose_ref nor pose_odom")
+    robot = robot_pose if robot_pose is not None else (
+        scan.pose_odom if scan.pose_odom is not None else laser)
+    n = len(scan.ranges)
+    r = np.where(np.isfinite(scan.ranges), scan.ranges, max_range)
+    t = f"{scan.stamp_ns * 1e-9:.6f}"
+    head = (f"ROBOTLASER1 0 {scan.angle_min:.6f} {scan.angle_increment * max(n - 1, 1):.6f} "
+            f"{scan.angle_increment:.9f} {max_range:.2f} 0.01 0 {n}")
+    poses = " ".join(f"{v:.6f}" for v in (*laser, *robot))
+    return (f"{head} {' '.join(f'{v:.3f}' for v in r)} 0 {poses} 0 0 0 0 0 {t} cgamap {t}\n")
+
+
+def write_carmen(path: str | Path, scans, kind: str = "FLASER", robot_poses=None) -> int:
+    """Write ``scans`` as an old-format CARMEN log (one ``kind`` line each: FLASER or
+    ROBOTLASER1, the latter with ``robot_poses`` (n, 3) as the robot's when given), after a
+    format comment, to be read back by :func:`read_carmen`; returns the lines written."""
+    if kind == "FLASER":
+        body = [flaser_line(s) for s in scans]
+    elif kind == "ROBOTLASER1":
+        robots = [None] * len(scans) if robot_poses is None else list(robot_poses)
+        body = [robotlaser_line(s, r) for s, r in zip(scans, robots, strict=True)]
+    else:
+        raise ValueError(f"write_carmen: kind must be FLASER or ROBOTLASER1, got {kind!r}")
+    lines = [f"# message formats defined: {kind}\n", *body]
     Path(path).write_text("".join(lines), encoding="ascii")
     return len(lines) - 1

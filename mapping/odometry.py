@@ -160,6 +160,25 @@ def pose_increments(poses) -> np.ndarray:
     return relative(p[:-1], p[1:])
 
 
+def laser_mount(odometry, laser, tol_trans: float = 0.005, tol_rot: float = 0.002
+                ) -> np.ndarray | None:
+    """The laser's mount (x, y, theta in the robot frame) when a log's laser poses (n, 3)
+    are its odometry poses (n, 3) moved by one fixed offset, as CARMEN writes them for a
+    laser off the robot's centre; None when the two are the same, or are not one offset
+    apart (every pose within ``tol_trans`` m / ``tol_rot`` rad of the median offset)."""
+    o, p = np.asarray(odometry, float).reshape(-1, 3), np.asarray(laser, float).reshape(-1, 3)
+    if not len(o) or o.shape != p.shape:
+        return None
+    rel = relative(o, p)
+    m = np.median(rel, axis=0)
+    off = rel - m
+    off[:, 2] = wrap_angle(off[:, 2])
+    if (np.hypot(off[:, 0], off[:, 1]).max() > tol_trans or np.abs(off[:, 2]).max() > tol_rot
+            or (np.hypot(m[0], m[1]) <= 1e-4 and abs(m[2]) <= 1e-5)):
+        return None
+    return m
+
+
 # The planar pose's motor is the core's closed form (one pose or a batch, microseconds).
 planar_motor = motor_from_pose2d
 

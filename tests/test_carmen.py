@@ -13,6 +13,7 @@ from cgamap.drivers.carmen import (
     beam_geometry,
     read_carmen,
     read_scans,
+    write_carmen,
 )
 from cgamap.drivers.messages import LaserScan, OdometryPose
 from conftest import require_data
@@ -60,6 +61,37 @@ def test_gzip_and_robotlaser(tmp_path):
     assert scan.angle_increment == pytest.approx(3.14159 / (n - 1))
     assert np.isnan(scan.ranges[3]) and scan.ranges[4] == 4.0
     assert scan.stamp_ns == 7_250_000_000
+
+
+def test_robotlaser_beams_follow_the_resolution_field(tmp_path):
+    # 180 beams a degree apart, fov written as pi: (n - 1) * 1 deg is 179 deg, and spreading
+    # the beams over the fov field would put the last one a degree off
+    ranges = " ".join(["2.0"] * 180)
+    log = tmp_path / "r.log"
+    log.write_text(f"ROBOTLASER1 0 -1.570796 3.141593 0.017453 81.9 0.01 0 180 {ranges} 0 "
+                   "1 2 0.5 0.9 2 0.5 0 0 0 0 0 3.0 host 3.0\n")
+    (scan,) = read_scans(log)
+    assert scan.angle_increment == pytest.approx(0.017453)
+    assert scan.pose_ref == (1.0, 2.0, 0.5) and scan.pose_odom == (0.9, 2.0, 0.5)
+
+
+def test_robotlaser_written_and_read_back(tmp_path):
+    inc = math.radians(0.25)
+    r = np.linspace(1.0, 5.0, 1081)
+    r[7] = np.nan
+    scans = [LaserScan(seq=0, stamp_ns=2_500_000_000, angle_min=-math.radians(135),
+                       angle_increment=inc, ranges=r, pose_ref=(1.0, 2.0, 0.3))]
+    log = tmp_path / "w.log"
+    assert write_carmen(log, scans, kind="ROBOTLASER1", robot_poses=[(0.8, 2.0, 0.3)]) == 1
+    (back,) = read_scans(log)
+    assert back.angle_min == pytest.approx(-math.radians(135))
+    assert back.angle_increment == pytest.approx(inc)
+    assert np.isnan(back.ranges[7]) and np.allclose(np.delete(back.ranges, 7),
+                                                   np.delete(r, 7), atol=5e-4)
+    assert back.pose_ref == (1.0, 2.0, 0.3) and back.pose_odom == (0.8, 2.0, 0.3)
+    assert back.stamp_ns == 2_500_000_000
+    with pytest.raises(ValueError, match="kind"):
+        write_carmen(log, scans, kind="RAWLASER1")
 
 
 def test_malformed_names_file_and_line(tmp_path):

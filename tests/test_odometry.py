@@ -14,6 +14,7 @@ from cgamap.mapping.odometry import (
     compose_pose2d,
     integrate_increments,
     integrate_motor,
+    laser_mount,
     motor_pose2d,
     planar_motor,
     pose_increments,
@@ -169,3 +170,16 @@ def test_noise_presets_on_the_intel_log_match_design(shared_data):
     assert 6.0 < a < 18.0 and 0.05 < r < 0.09
     low = add_odometry_noise(ref, "low", 0)
     assert ate(low, ref)["ate_trans_m"] < a / 2
+
+
+def test_laser_mount_from_a_logs_poses():
+    rng = np.random.default_rng(4)
+    robot = np.column_stack([rng.uniform(-5, 5, (50, 2)), rng.uniform(-3, 3, 50)])
+    mount = np.array([0.2, -0.04, 0.05])
+    laser = compose_pose2d(robot, mount)
+    assert np.allclose(laser_mount(robot, laser), mount)
+    assert laser_mount(robot, robot) is None          # the laser at the centre
+    drifted = laser.copy()
+    drifted[25:, 0] += 0.3                             # two trajectories, no one offset
+    assert laser_mount(robot, drifted) is None
+    assert laser_mount(robot[:3], laser) is None       # mismatched lengths
