@@ -107,19 +107,18 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     L1 = np.hypot(d1[..., 0], d1[..., 1])
     # eq. (15) through the inner products of the normalised IPNS sphere vectors
     # s_i = up(c_i) - r_i^2/2 einf: s_i . s_i = r_i^2 and s1 . s2 = (r1^2 + r2^2 - d^2) / 2
-    # (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 without forming the
-    # 5-vectors (sphere_relation is the coefficient form, pinned against
-    # cga.spheres_intersect by a test); containment: d <= |r1 - r2|
+    # (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 <= 0 exactly when
+    # (r1 - r2)^2 <= d^2 <= (r1 + r2)^2; with containment (d <= |r1 - r2|) accepted too,
+    # the candidates are d <= r1 + r2 (sphere_relation is the coefficient form, pinned
+    # against cga.spheres_intersect and this by tests).  One comparison per pair: this
+    # runs for every gate of every scan's correction
     c1 = 0.5 * (a1 + b1)
     r1 = (0.5 * L1 + margin)[..., :, None]
     r2 = (idx.half + margin)[..., None, :]
     dx = c1[..., :, None, 0] - idx.centre[..., None, :, 0]
     dy = c1[..., :, None, 1] - idx.centre[..., None, :, 1]
-    d2 = dx * dx + dy * dy
-    R1, R2 = r1 * r1, r2 * r2
-    s12 = 0.5 * (R1 + R2 - d2)
-    RR = R1 * R2
-    near = (s12 * s12 - RR <= 1e-12 * np.maximum(1.0, RR)) | (d2 <= (r1 - r2) ** 2)
+    rr = r1 + r2
+    near = dx * dx + dy * dy <= rr * rr * (1.0 + 1e-12)
     d1 = d1 / np.maximum(L1, 1e-12)[..., None]
     # |sin| of the undirected angle between the lines: d1 . n2 (n2 is d2 turned by 90 deg)
     nT = np.swapaxes(idx.n, -1, -2)

@@ -342,7 +342,8 @@ class Mapper:
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
-        age_out(self.map, node, P.map)
+        if node % P.map.age_every == 0:
+            age_out(self.map, node, P.map)
         if node % P.map.dedupe_every == 0:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)
 

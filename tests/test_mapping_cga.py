@@ -90,6 +90,22 @@ def test_eq15_closed_form_matches_cga(c2, r2, sign):
     assert (0 if abs(q) < 1e-12 else int(np.sign(q))) == sign
 
 
+def test_the_candidate_test_is_eq15_or_containment():
+    # match_index decides by the centre distance (d <= r1 + r2); on random segments that
+    # must be exactly eq. 15's sign (<= 0) or containment, from the sphere coefficients
+    rng = np.random.default_rng(7)
+    a1, b1 = rng.uniform(-3, 3, (40, 2)), rng.uniform(-3, 3, (40, 2))
+    a2, b2 = rng.uniform(-3, 3, (50, 2)), rng.uniform(-3, 3, (50, 2))
+    margin = 0.2
+    ok, _ = match_candidates(a1, b1, a2, b2, np.pi / 2, 100.0, margin=margin)
+    q = sphere_relation(sphere_vectors(a1, b1, margin), sphere_vectors(a2, b2, margin))
+    r1 = 0.5 * np.linalg.norm(b1 - a1, axis=1)[:, None] + margin
+    r2 = 0.5 * np.linalg.norm(b2 - a2, axis=1)[None, :] + margin
+    d = np.linalg.norm(0.5 * (a1 + b1)[:, None] - 0.5 * (a2 + b2)[None], axis=-1)
+    expect = (q <= 1e-9) | (d <= np.abs(r1 - r2))
+    assert 0 < expect.sum() < expect.size and np.array_equal(ok, expect)
+
+
 def test_containment_is_a_candidate():
     # a short observed piece of a long wall: its sphere lies inside the wall's sphere
     ok, _ = match_candidates(np.array([[1.0, 0.02]]), np.array([[2.0, 0.02]]),
