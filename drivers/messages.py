@@ -57,7 +57,8 @@ class LaserScan:
     device_stamp: int | None = None
     frame: str = "laser"
     # Poses carried by logs (CARMEN FLASER: reference pose and odometry pose) or by a twin
-    # (ground truth): (x, y, theta) of the laser in the world/odometry frame, else None.
+    # (ground truth): (x, y, theta) in the world/odometry frame, else None.  pose_ref is the
+    # laser's; a CARMEN pose_odom is the robot's (the same for a laser at its centre)
     pose_ref: tuple[float, float, float] | None = None
     pose_odom: tuple[float, float, float] | None = None
     errors: dict[str, int] = field(default_factory=dict)
