@@ -33,16 +33,13 @@ def _build(log: Path, out: Path) -> dict:
 
 
 def _limited(log: Path) -> dict:
-    import numpy as np
     from cgamap.drivers.carmen import read_scans
-    from cgamap.mapping.odometry import add_odometry_noise
-    from cgamap.mapping.offline import build_map
+    from cgamap.mapping.offline import build_map, log_odometry
     from cgamap.mapping.segments import SegmentParams
     from cgamap.mapping.slam2d import MapperParams
 
     scans = read_scans(log)
-    odo = np.array([s.pose_odom for s in scans])  # as map build takes it (bench/intel.py)
-    res = build_map(scans, add_odometry_noise(odo, "high", 0),
+    res = build_map(scans, log_odometry(scans, "high", 0)[0],  # as map build takes it
                     MapperParams(segments=SegmentParams(range_max=25.0)))
     return {k: res.report[k] for k in ("ate_trans_m", "ate_rot_deg", "loop_closures")}
 

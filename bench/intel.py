@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import numpy as np
-
 LOG = "laser/intel-corrected.log.gz"
 
 
@@ -30,8 +28,7 @@ def scans() -> tuple:
 @lru_cache(maxsize=4)
 def build(seed: int = 0):
     """``map build`` with ``--odom-noise high --seed seed``, default parameters."""
-    from cgamap.mapping.odometry import add_odometry_noise
-    from cgamap.mapping.offline import build_map
+    from cgamap.mapping.offline import build_map, log_odometry
 
     s = list(scans())
-    return build_map(s, add_odometry_noise(np.array([x.pose_odom for x in s]), "high", seed))
+    return build_map(s, log_odometry(s, "high", seed)[0])

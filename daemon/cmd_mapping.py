@@ -84,25 +84,6 @@ def _read_log(path: str, lenient: bool):
     return scans, st
 
 
-def _odometry(scans) -> np.ndarray:
-    odo = [s.pose_odom if s.pose_odom is not None else s.pose_ref for s in scans]
-    if any(o is None for o in odo):
-        raise UsageError("--log: scans carry no poses (FLASER odometry fields); "
-                         "cannot replay without odometry")
-    return np.array(odo, dtype=float)
-
-
-def _mount(scans, odo: np.ndarray) -> np.ndarray | None:
-    """The laser's offset from the robot, when the log's laser poses are its odometry poses
-    moved by one (:func:`~cgamap.mapping.odometry.laser_mount`)."""
-    from cgamap.mapping.odometry import laser_mount
-
-    ref = [s.pose_ref for s in scans]
-    if any(r is None for r in ref) or any(s.pose_odom is None for s in scans):
-        return None
-    return laser_mount(odo, np.array(ref, float))
-
-
 def _read_relations(path: str) -> np.ndarray:
     from cgamap.mapping.evaluation import load_relations
 
@@ -139,8 +120,7 @@ def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.fileio import write_text_atomic
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
-    from cgamap.mapping.odometry import add_odometry_noise, compose_pose2d
-    from cgamap.mapping.offline import build_map
+    from cgamap.mapping.offline import build_map, log_odometry
     from cgamap.mapping.render import export_occupancy, render_png
     from cgamap.mapping.slam2d import LoopParams, MapperParams
 
@@ -151,13 +131,10 @@ def run_build(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UsageError(f"--out: {out}: cannot create ({exc.strerror})") from None
-    odo = _odometry(scans)
-    # CARMEN's odometry is the robot's; a laser off its centre moves differently when it
-    # turns.  The noise goes on the robot's increments, then the poses are the laser's
-    mount = _mount(scans, odo)
-    odo = add_odometry_noise(odo, args.odom_noise, args.seed)
-    if mount is not None:
-        odo = compose_pose2d(odo, mount)
+    try:
+        odo, mount = log_odometry(scans, args.odom_noise, args.seed)
+    except ValueError as exc:
+        raise UsageError(f"--log: {exc}; cannot replay without odometry") from None
     params = MapperParams(loop=LoopParams(enabled=not args.no_loop_closure))
     res = build_map(scans, odo, params, _progress("map build", args.quiet))
     meta = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,

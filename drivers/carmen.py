@@ -17,8 +17,8 @@ wide).  Ranges at or above the sensor maximum mean "no return" and become NaN.
 
 ``pose_ref`` is the line's laser pose; ``pose_odom`` its odometry pose (FLASER odom_x ..,
 ROBOTLASER1 robot_x ..), which is the robot's: a laser mounted off the robot's centre is
-offset from it (``mapping.odometry.laser_mount`` finds the offset; ``cgamap map build``
-carries the odometry to the laser with it).
+offset from it (``mapping.offline.log_odometry`` finds the offset and carries the odometry
+to the laser).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Pure functions over arrays the caller has read (``mapping`` never reads devices or logs):
 scans are objects with ``ranges``, ``angle_min``, ``angle_increment``, ``stamp_ns`` and
-optionally ``pose_ref``.
+optionally ``pose_ref`` (the laser's pose) and ``pose_odom`` (the robot's odometry pose).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 
 from .evaluation import align_rigid_2d, apply_pose, ate, icp_agreement, rpe
 from .linemap import LineMap
-from .odometry import wrap_angle
+from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
 from .relocalize import DistanceField, RelocParams, relocalize
 from .segments import SegmentParams, extract_segments
 from .slam2d import Mapper, MapperParams
@@ -32,6 +32,25 @@ class BuildResult:
 def _stats_ms(ts) -> tuple[float, float]:
     ms = np.asarray(ts) * 1e3
     return (float(np.median(ms)), float(np.percentile(ms, 95))) if len(ms) else (0.0, 0.0)
+
+
+def log_odometry(scans: Sequence, preset: str = "none", seed: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The laser's odometry (n, 3) for replaying a log, and the laser's mount (None for a
+    laser at the robot's centre).  Each scan's odometry pose (its reference pose where it
+    has none) gets ``preset`` noise on the robot's increments (:func:`.add_odometry_noise`),
+    then is carried to the laser by the one offset the log's laser poses keep from it
+    (:func:`.laser_mount`): a laser off the centre moves differently when the robot turns.
+    ValueError when a scan carries no pose at all."""
+    odo = [s.pose_odom if s.pose_odom is not None else s.pose_ref for s in scans]
+    if any(o is None for o in odo):
+        raise ValueError("scans carry no poses (no odometry fields)")
+    odo = np.array(odo, dtype=float).reshape(-1, 3)
+    ref = [s.pose_ref for s in scans]
+    mount = (laser_mount(odo, np.array(ref, float)) if all(r is not None for r in ref)
+             and all(s.pose_odom is not None for s in scans) else None)
+    odo = add_odometry_noise(odo, preset, seed)
+    return (odo if mount is None else compose_pose2d(odo, mount)), mount
 
 
 def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None = None,

@@ -183,3 +183,24 @@ def test_laser_mount_from_a_logs_poses():
     drifted[25:, 0] += 0.3                             # two trajectories, no one offset
     assert laser_mount(robot, drifted) is None
     assert laser_mount(robot[:3], laser) is None       # mismatched lengths
+
+
+def test_log_odometry_carries_the_robots_odometry_to_the_laser():
+    from types import SimpleNamespace
+
+    from cgamap.mapping.offline import log_odometry
+
+    rng = np.random.default_rng(5)
+    robot = np.cumsum(rng.uniform(-0.3, 0.3, (30, 3)), axis=0)
+    mount = np.array([0.3, 0.0, 0.02])
+    laser = compose_pose2d(robot, mount)
+    scans = [SimpleNamespace(pose_ref=tuple(p), pose_odom=tuple(o))
+             for p, o in zip(laser, robot, strict=True)]
+    odo, got = log_odometry(scans)
+    assert np.allclose(got, mount) and np.allclose(odo, laser)
+    noisy, _ = log_odometry(scans, "high", 3)        # noise on the robot, then to the laser
+    assert np.allclose(noisy, compose_pose2d(add_odometry_noise(robot, "high", 3), mount))
+    centred = [SimpleNamespace(pose_ref=tuple(o), pose_odom=tuple(o)) for o in robot]
+    assert log_odometry(centred)[1] is None
+    with pytest.raises(ValueError, match="no poses"):
+        log_odometry([SimpleNamespace(pose_ref=None, pose_odom=None)])
