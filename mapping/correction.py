@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .matching import LineIndex, match_index
+from .matching import LineIndex, line_normals, match_index
 from .segments import Segments
 
 _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate quadratics exactly
@@ -63,6 +63,21 @@ def _rot_t(theta) -> np.ndarray:
     out = np.empty(np.shape(c) + (2, 2))
     out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, s, -s, c
     return out
+
+
+def _solve3(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """x with H x = g for (P, 3, 3) H (symmetric positive definite) and (P, 3) g.  One
+    problem (a scan's correction) is solved by the adjugate in plain floats: numpy's calls
+    on 3-element arrays cost more than the rest of a small problem's Gauss-Newton pass."""
+    if len(H) != 1:
+        return np.linalg.solve(H, g[..., None])[..., 0]
+    (a, b, c), (_, d, e), (_, _, f) = H[0].tolist()
+    g0, g1, g2 = g[0].tolist()
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    return np.array([[(A * g0 + B * g1 + C * g2) / det, (B * g0 + D * g1 + E * g2) / det,
+                      (C * g0 + E * g1 + F * g2) / det]])
 
 
 def _transform(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -112,42 +127,49 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
     wq = np.concatenate([L, L], axis=1) * 0.5
     rows = np.arange(n_pairs)[:, None]
     pts = np.concatenate([seg_a, seg_b, q], axis=1)  # moved together: one product per pass
+    # (each pass below is a fixed number of numpy calls over all problems at once: with
+    # one problem of a few dozen segments, the calls are the cost, not the arithmetic)
     if k and index.a.shape[-2]:
+        var = params.sigma_point ** 2
+        wq_var = wq / var
+        # the Jacobian's columns and the residual as a fourth: H and g are one product
+        Je = np.empty((n_pairs, 2 * k, 4))
         for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
             t = x[:, None, :2]
             moved = pts @ _rot_t(x[:, 2]) + t
             qg = moved[:, 2 * k:]
             ok, cost = match_index(moved[:, :k], moved[:, k:2 * k], index, np.deg2rad(ag), gate)
             best = np.argmin(cost, axis=-1)
-            has = np.isfinite(cost.min(axis=-1))  # the cost is inf where no candidate
+            has = ok.any(axis=-1)
             matches = np.where(has, best, -1)
             r = x - pred
             r[:, 2] = (r[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # eq. (9)
-            g = w_prior * r
             jm = np.concatenate([best, best], axis=1)
             use = np.concatenate([has, has], axis=1)
             n = index.n[rows, jm]
-            e = (n * qg).sum(-1) - index.c[rows, jm]
+            nx, ny = n[..., 0], n[..., 1]
+            e = nx * qg[..., 0] + ny * qg[..., 1] - index.c[rows, jm]
             rel = qg - t
-            J = np.empty(n.shape[:-1] + (3,))
-            J[..., :2] = n
-            J[..., 2] = n[..., 1] * rel[..., 0] - n[..., 0] * rel[..., 1]
+            Je[..., :2] = n
+            Je[..., 2] = ny * rel[..., 0] - nx * rel[..., 1]
+            Je[..., 3] = e
             scale = max(gate / 3.0, 0.03)
-            var = params.sigma_point ** 2
             if params.extrapolation > 0:
                 half = index.half[rows, jm]
                 off = qg - index.centre[rows, jm]
-                along = off[..., 0] * n[..., 1] - off[..., 1] * n[..., 0]
+                along = off[..., 0] * ny - off[..., 1] * nx
                 past = np.maximum(np.abs(along) - half, 0.0)
-                var = var + (past * params.extrapolation / np.maximum(2.0 * half, 1e-3)) ** 2
-            w = np.where(use, wq / var / (1.0 + (e / scale) ** 2), 0.0)
-            JwT = np.swapaxes(J * w[..., None], -1, -2)
-            H = H0 + JwT @ J
-            g += (JwT @ e[..., None])[..., 0]
-            dx = -np.linalg.solve(H, g[..., None])[..., 0]
+                w = wq / (var + (past * params.extrapolation / np.maximum(2.0 * half, 1e-3))
+                          ** 2)
+            else:
+                w = wq_var
+            w = w * use / (1.0 + (e / scale) ** 2)
+            Hg = np.swapaxes(Je[..., :3] * w[..., None], -1, -2) @ Je
+            H = H0 + Hg[..., :3]
+            dx = -_solve3(H, w_prior * r + Hg[..., 3])
             x = x + dx
             x[:, 2] = (x[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
-            if gate <= params.converged_gate and np.max(np.abs(dx)) < 5e-4:
+            if gate <= params.converged_gate and np.abs(dx).max() < 5e-4:
                 break  # converged and the gates are already tight
     total = L.sum(axis=1)
     matched = np.sum(L * (matches >= 0), axis=1)
@@ -187,8 +209,11 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
     reach = 0.5 * float(L.max()) + half + 2.0 * wide
     box = np.nonzero(np.all((centre >= lo - reach[:, None]) & (centre <= hi + reach[:, None]),
                             axis=1))[0]
-    index = (map_index.subset(box) if map_index is not None
-             else LineIndex.of(map_a[box], map_b[box]))
+    if map_index is not None:
+        index = map_index.subset(box)
+    else:
+        ab, bb = map_a[box], map_b[box]
+        index = LineIndex(ab, bb, centre[box], half[box], *line_normals(ab, bb))
     ok0, _ = match_index(ga, gb, index, np.deg2rad(max(params.angle_gates_deg)), wide)
     near = box[np.nonzero(ok0.any(axis=0))[0]]
     if not len(near):

@@ -111,21 +111,21 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     # (r1 - r2)^2 <= d^2 <= (r1 + r2)^2; with containment (d <= |r1 - r2|) accepted too,
     # the candidates are d <= r1 + r2 (sphere_relation is the coefficient form, pinned
     # against cga.spheres_intersect and this by tests).  One comparison per pair: this
-    # runs for every gate of every scan's correction
+    # runs for every gate of every scan's correction, so every step below is one numpy
+    # call over the (k1, k2) pairs, as few as the test allows
     c1 = 0.5 * (a1 + b1)
-    r1 = (0.5 * L1 + margin)[..., :, None]
-    r2 = (idx.half + margin)[..., None, :]
-    dx = c1[..., :, None, 0] - idx.centre[..., None, :, 0]
-    dy = c1[..., :, None, 1] - idx.centre[..., None, :, 1]
-    rr = r1 + r2
+    ctr = idx.centre
+    dx = c1[..., :, None, 0] - ctr[..., None, :, 0]
+    dy = c1[..., :, None, 1] - ctr[..., None, :, 1]
+    rr = (0.5 * L1 + margin)[..., :, None] + (idx.half + margin)[..., None, :]
     near = dx * dx + dy * dy <= rr * rr * (1.0 + 1e-12)
-    d1 = d1 / np.maximum(L1, 1e-12)[..., None]
-    # |sin| of the undirected angle between the lines: d1 . n2 (n2 is d2 turned by 90 deg)
-    nT = np.swapaxes(idx.n, -1, -2)
-    cT = idx.c[..., None, :]
-    sin_ang = np.abs(d1 @ nT)
-    ada = np.abs(a1 @ nT - cT)
-    adb = np.abs(b1 @ nT - cT)
-    ok = near & (sin_ang < math.sin(max_angle)) & (ada < max_dist) & (adb < max_dist)
-    cost = 0.5 * (ada + adb) + 0.5 * sin_ang
+    # signed distances of both end points from every line, one product: ea = a1 . n2 - c2.
+    # Their difference over the length is d1 . n2, the |sin| of the undirected angle
+    # between the lines (n2 is d2 turned by 90 deg)
+    E = np.concatenate([a1, b1], axis=-2) @ np.swapaxes(idx.n, -1, -2) - idx.c[..., None, :]
+    ea, eb = E[..., :k1, :], E[..., k1:, :]
+    sin_ang = np.abs(eb - ea) / np.maximum(L1, 1e-12)[..., None]
+    ada, adb = np.abs(ea), np.abs(eb)
+    ok = near & (sin_ang < math.sin(max_angle)) & (np.maximum(ada, adb) < max_dist)
+    cost = 0.5 * (ada + adb + sin_ang)
     return ok, np.where(ok, cost, np.inf)

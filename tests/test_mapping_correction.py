@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from cgamap.mapping.correction import correct_pose
+from cgamap.mapping.correction import _solve3, correct_batch, correct_pose
+from cgamap.mapping.matching import LineIndex
 from cgamap.mapping.evaluation import align_rigid_2d, apply_pose, ate, rpe
 from cgamap.mapping.posegraph import PoseGraph, relative, wrap
 from cgamap.mapping.segments import segments_from_scan
@@ -34,6 +35,29 @@ def test_known_motion_recovered_from_segments(dx, dy, dth):
     assert np.allclose(c.pose[:2], TRUE[:2], atol=2e-3)
     assert abs(wrap(c.pose[2] - TRUE[2])) < 1e-3
     assert c.matched_fraction > 0.9 and c.rms < 1e-3
+
+
+def test_one_problem_and_a_batch_solve_alike():
+    """The adjugate solve of one problem (plain floats) is LAPACK's, and a problem solved
+    alone gives what it gives inside a batch."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(5, 3, 3))
+    H = A @ np.swapaxes(A, 1, 2) + np.eye(3) * 1e-3 + np.diag([1e4, 1e4, 1e5])
+    g = rng.normal(size=(5, 3)) * 100.0
+    want = np.linalg.solve(H, g[..., None])[..., 0]
+    for i in range(5):
+        assert np.allclose(_solve3(H[i:i + 1], g[i:i + 1]), want[i], rtol=1e-10, atol=0)
+    assert np.allclose(_solve3(H, g), want, rtol=1e-12, atol=0)
+    _, seg = _room_map()
+    idx = LineIndex.of(np.repeat(seg.a[None], 3, 0), np.repeat(seg.b[None], 3, 0))
+    guess = np.array([[0.1, -0.05, 0.03], [-0.1, 0.08, -0.04], [0.0, 0.1, 0.02]])
+    both = correct_batch(np.repeat(seg.a[None], 3, 0), np.repeat(seg.b[None], 3, 0), idx,
+                         guess, 10.0)
+    for i in range(3):
+        one = correct_batch(seg.a[None], seg.b[None], LineIndex.of(seg.a[None], seg.b[None]),
+                            guess[i:i + 1], 10.0)
+        assert np.allclose(one.pose[0], both.pose[i], atol=1e-9)
+        assert np.abs(one.pose[0]).max() < 2e-3  # the walls win over the prior
 
 
 def test_scan_from_another_pose_is_located():
