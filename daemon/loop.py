@@ -268,7 +268,10 @@ def planemap_from_simple(simple: list[dict]) -> dict:
 class MappingLoop:
     """Fuses device messages; ``status()``, ``map_json()``, ``state()`` for the service."""
 
-    def __init__(self, cfg: dict, mapper2d: Any | None = None, devices: dict | None = None):
+    def __init__(self, cfg: dict, mapper2d: Any | None = None, devices: dict | None = None,
+                 laser_mount: tuple[float, float, float] | None = None):
+        """``laser_mount`` (x, y, yaw), when given, replaces the laser device's configured
+        mount (a replayed log states its own)."""
         m = cfg["mapping"]
         self.cfg = cfg
         self.lost_quality = m["lost_quality"]
@@ -283,8 +286,11 @@ class MappingLoop:
         if laser is not None:
             mt = laser["mount"]
             mount = (mt["x"], mt["y"], mt["yaw"])
-            if not any(mount):
-                mount = None
+        if laser_mount is not None:
+            mount = tuple(float(v) for v in laser_mount)
+        if mount is not None and not any(mount):
+            mount = None
+        self.laser_mount = mount
         self.mapper = mapper2d
         if self.mapper is None and m["map2d"]:
             try:
@@ -697,7 +703,9 @@ class MappingLoop:
                         "version": self.map_version},
                 "counts": dict(self.counts), "pending_scans": len(self.pending),
                 "timing_ms": {k: round(v, 2) for k, v in self.timing.items()},
-                "optimize": {"running": self.optimizing, "last": self.last_optimize}}
+                "optimize": {"running": self.optimizing, "last": self.last_optimize},
+                "laser_mount": None if self.laser_mount is None else [
+                    round(float(v), 5) for v in self.laser_mount]}
 
     def map_json(self) -> dict:
         seg = self.segments()

@@ -105,6 +105,48 @@ def check_replay(path: str) -> None:
                            "recording or a CARMEN log?)", EX_NOINPUT)
 
 
+def replay_mount(path: str) -> tuple[float, float, float] | None:
+    """The laser mount (x, y, yaw) a replayed CARMEN log states: its laser poses are its
+    odometry (robot) poses moved by one fixed offset (a ROBOTLASER1 log of a laser off the
+    robot's centre) -> that offset; the very same poses (an FLASER log) -> (0, 0, 0).  None
+    when the log states none (an MCAP recording, poses missing, or laser poses corrected
+    apart from the odometry): the configuration's mount stands."""
+    import numpy as np
+    from cgamap.daemon.recording import is_mcap, read_messages
+    from cgamap.drivers.messages import LaserScan
+    from cgamap.mapping.odometry import laser_mount, relative
+
+    if is_mcap(path):
+        return None
+    ref, odo = [], []
+    for msg in read_messages(path):
+        if isinstance(msg, LaserScan) and msg.pose_ref is not None and msg.pose_odom is not None:
+            ref.append(msg.pose_ref)
+            odo.append(msg.pose_odom)
+    if not ref:
+        return None
+    odo_a, ref_a = np.array(odo, float), np.array(ref, float)
+    m = laser_mount(odo_a, ref_a)
+    if m is not None:
+        return (float(m[0]), float(m[1]), float(m[2]))
+    rel = relative(odo_a, ref_a)
+    same = np.abs(rel[:, :2]).max() <= 1e-4 and np.abs(rel[:, 2]).max() <= 1e-5
+    return (0.0, 0.0, 0.0) if same else None
+
+
+def mount_note(cfg: dict, mount: tuple[float, float, float]) -> str | None:
+    """A line to log when a replayed log's laser mount differs from the configured one."""
+    laser = next((d for d in cfg["devices"].values() if d["role"] == "laser"), None)
+    mt = laser["mount"] if laser is not None else {"x": 0.0, "y": 0.0, "yaw": 0.0}
+    old = (mt["x"], mt["y"], mt["yaw"])
+    if max(abs(o - m) for o, m in zip(old, mount, strict=True)) <= 1e-3:
+        return None
+    return (f"replay: the log's laser poses put the laser at x {mount[0]:.3f} m, "
+            f"y {mount[1]:.3f} m, yaw {math.degrees(mount[2]):.2f} deg from the robot's "
+            f"centre; used in place of the configuration's ({old[0]:.3f} m, {old[1]:.3f} m, "
+            f"{math.degrees(old[2]):.2f} deg)")
+
+
 def check_paths(state_dir: Path, socket_path: Path) -> None:
     """The state directory must be usable (else the maps would silently not be saved) and
     the socket path must not be some other file (the server unlinks a stale socket)."""
@@ -164,8 +206,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (math.isfinite(args.replay_rate) and args.replay_rate >= 0):
             raise StartupError(f"--replay-rate: must be a number >= 0, got {args.replay_rate}",
                                EX_USAGE)
+        mount, note = None, None
         if args.replay:
             check_replay(args.replay)
+            mount = replay_mount(args.replay)
+            note = mount_note(cfg, mount) if mount is not None else None
         state, sock = config_mod.resolve_paths(cfg)
         state = Path(args.state_dir) if args.state_dir else state
         check_paths(state, Path(args.socket) if args.socket else sock)
@@ -176,11 +221,13 @@ def main(argv: list[str] | None = None) -> int:
     level = (args.log_level or cfg["log_level"]).upper()
     logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")  # journald adds the time
+    if note:
+        logging.getLogger("cgamapd").warning("%s", note)
     from cgamap.daemon.service import Daemon
 
     daemon = Daemon(cfg, config_path=path, replay=args.replay, replay_rate=args.replay_rate,
                     state_dir=args.state_dir, socket_path=args.socket,
-                    exit_after_replay=args.exit_after_replay)
+                    exit_after_replay=args.exit_after_replay, laser_mount=mount)
     try:
         return daemon.run()
     finally:

@@ -35,7 +35,8 @@ POSE_LIMIT_M = 1e6  # |x|, |y| bound for set-pose: beyond it the map's extent ca
 class Daemon:
     def __init__(self, cfg: dict, config_path: str | None = None, replay: str | None = None,
                  replay_rate: float = 0.0, state_dir: str | None = None,
-                 socket_path: str | None = None, exit_after_replay: bool = False):
+                 socket_path: str | None = None, exit_after_replay: bool = False,
+                 laser_mount: tuple[float, float, float] | None = None):
         self.cfg = cfg
         self.config_path = config_path
         self.replay = replay
@@ -49,7 +50,9 @@ class Daemon:
         self.reload_requested = False
         self.checkpoint_requested = False
         self.store = CheckpointStore(self.state_dir)
-        self.loop = MappingLoop(cfg)
+        # a replayed log's own laser mount (``main.replay_mount``) over the configured one
+        self.laser_mount = laser_mount
+        self.loop = MappingLoop(cfg, laser_mount=laser_mount)
         self.supervisor = self._build_supervisor(cfg)
         self.server: QueryServer | None = None
         self.started_mono = time.monotonic()
@@ -203,7 +206,7 @@ class Daemon:
         except (KeyError, TypeError, ValueError) as exc:
             log.warning("checkpoint %s does not fit this build (%s): empty map",
                         payload.get("_file"), exc)
-            self.loop = MappingLoop(self.cfg)
+            self.loop = MappingLoop(self.cfg, laser_mount=self.laser_mount)
 
     def checkpoint(self, reason: str) -> dict:
         try:

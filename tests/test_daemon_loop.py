@@ -55,6 +55,17 @@ def test_scan_waits_for_odometry_then_uses_the_interpolated_guess():
     assert loop.current_pose()[0] == pytest.approx(1.5)
 
 
+def test_a_given_laser_mount_replaces_the_configured_one():
+    devices = {"lms": {"role": "laser", "mount": {"x": 0.2, "y": 0.0, "yaw": 0.0}}}
+    assert MappingLoop(cfg(), devices=devices).status()["laser_mount"] == [0.2, 0.0, 0.0]
+    loop = MappingLoop(cfg(), devices=devices, laser_mount=(0.25, -0.05, 0.03))
+    assert loop.status()["laser_mount"] == [0.25, -0.05, 0.03]
+    assert loop.mapper.m.params.mount == (0.25, -0.05, 0.03)
+    # a log whose laser is the robot's centre: no mount, whatever the configuration says
+    assert MappingLoop(cfg(), devices=devices, laser_mount=(0, 0, 0)).status()[
+        "laser_mount"] is None
+
+
 def test_standing_robot_does_not_grow_the_map():
     loop = MappingLoop(cfg(scan_max_rate=100.0), devices={})
     world = get_world("corridor")

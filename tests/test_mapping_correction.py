@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from cgamap.mapping.correction import _solve3, correct_batch, correct_pose
-from cgamap.mapping.matching import LineIndex
 from cgamap.mapping.evaluation import align_rigid_2d, apply_pose, ate, rpe
+from cgamap.mapping.matching import LineIndex
 from cgamap.mapping.posegraph import PoseGraph, relative, wrap
 from cgamap.mapping.segments import segments_from_scan
 from cgamap.mapping.slam2d import compose
