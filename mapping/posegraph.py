@@ -111,32 +111,113 @@ class EdgeArrays:
         return self._layouts[n]
 
 
-@dataclass
+class Column:
+    """A growable column of same-shaped rows in one numpy buffer, used like a list (append,
+    index, assign, delete a slice, iterate; ``np.asarray`` gives the rows without a copy).
+
+    A graph a daemon keeps for months has some 600 000 edges: as lists of small arrays they
+    took ~420 bytes each (a Python object per measurement and per information matrix), as
+    columns 113, and handing them to a solve costs no conversion.  Rows read by index are
+    views: like a list's elements they see assignments, but not after the buffer grows."""
+
+    def __init__(self, shape: tuple = (), dtype=float, rows=None):
+        self._buf = np.empty((16, *shape), dtype)
+        self._n = 0
+        if rows is not None:
+            self.extend(rows)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _reserve(self, n: int) -> None:
+        if n > len(self._buf):
+            buf = np.empty((max(n, 2 * len(self._buf)), *self._buf.shape[1:]), self._buf.dtype)
+            buf[:self._n] = self._buf[:self._n]
+            self._buf = buf
+
+    def append(self, row) -> None:
+        self._reserve(self._n + 1)
+        self._buf[self._n] = row
+        self._n += 1
+
+    def extend(self, rows) -> None:
+        rows = np.asarray(rows if not isinstance(rows, Column) else rows.array(),
+                          self._buf.dtype).reshape(-1, *self._buf.shape[1:])
+        self._reserve(self._n + len(rows))
+        self._buf[self._n:self._n + len(rows)] = rows
+        self._n += len(rows)
+
+    def array(self) -> np.ndarray:
+        """The rows (a view)."""
+        return self._buf[:self._n]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self.array()
+        if dtype is not None and np.dtype(dtype) != a.dtype:
+            return a.astype(dtype)
+        return a.copy() if copy else a
+
+    def __getitem__(self, k):
+        return self.array()[k]
+
+    def __setitem__(self, k, value) -> None:
+        self.array()[k] = value
+
+    def __delitem__(self, k) -> None:
+        keep = np.ones(self._n, bool)
+        keep[k] = False
+        m = int(keep.sum())
+        self._buf[:m] = self._buf[:self._n][keep]
+        self._n = m
+
+    def __iter__(self):
+        return iter(self.array())
+
+    def copy(self) -> Column:
+        return Column(self._buf.shape[1:], self._buf.dtype, self.array())
+
+
+def _column(rows, shape: tuple, dtype) -> Column:
+    if isinstance(rows, Column):
+        return rows
+    return Column(shape, dtype, None if rows is None or len(rows) == 0 else rows)
+
+
 class PoseGraph:
-    poses: list = field(default_factory=list)          # (3,) arrays
-    ei: list = field(default_factory=list)
-    ej: list = field(default_factory=list)
-    z: list = field(default_factory=list)              # (3,) measured relative pose
-    info: list = field(default_factory=list)           # (3, 3)
-    loop: list = field(default_factory=list)           # robust (loop) edge?
+    """Poses (n, 3) and edges: node indices ``ei``, ``ej``, measured relative poses ``z``
+    (3,), information ``info`` (3, 3) and robust (loop) flags ``loop``, each a
+    :class:`Column`; lists given to the constructor or assigned are converted."""
+
+    _COLUMNS = {"poses": ((3,), float), "ei": ((), np.int64), "ej": ((), np.int64),
+                "z": ((3,), float), "info": ((3, 3), float), "loop": ((), bool)}
+
+    def __init__(self, poses=None, ei=None, ej=None, z=None, info=None, loop=None):
+        for name, value in zip(self._COLUMNS, (poses, ei, ej, z, info, loop), strict=True):
+            setattr(self, name, value)
+
+    def __setattr__(self, name, value) -> None:
+        if name in self._COLUMNS:
+            value = _column(value, *self._COLUMNS[name])
+        object.__setattr__(self, name, value)
+
+    def copy(self) -> PoseGraph:
+        return PoseGraph(*(getattr(self, name).copy() for name in self._COLUMNS))
 
     def add_node(self, pose) -> int:
-        self.poses.append(np.asarray(pose, dtype=float).copy())
+        self.poses.append(pose)
         return len(self.poses) - 1
 
     def add_edge(self, i: int, j: int, z, info, loop: bool = False) -> None:
         self.ei.append(i)
         self.ej.append(j)
-        self.z.append(np.asarray(z, dtype=float))
-        self.info.append(np.asarray(info, dtype=float))
+        self.z.append(z)
+        self.info.append(info)
         self.loop.append(loop)
 
     def edge_arrays(self) -> EdgeArrays:
-        """The edge lists as arrays, once per solve rather than once per iteration (a long
-        run's 600 000 edges take a second to convert)."""
-        return EdgeArrays(np.array(self.ei, int), np.array(self.ej, int),
-                          np.array(self.z, float).reshape(-1, 3),
-                          np.array(self.info, float).reshape(-1, 3, 3),
+        """The edges as arrays (copies: a solve's layout cache must not see later edits)."""
+        return EdgeArrays(np.array(self.ei, np.int64), np.array(self.ej, np.int64),
+                          np.array(self.z, float), np.array(self.info, float),
                           np.array(self.loop, bool))
 
     def residuals(self, X: np.ndarray | None = None) -> np.ndarray:
@@ -241,30 +322,28 @@ class PoseGraph:
             X[:, 2] = wrap(X[:, 2])
             if it >= 2 and np.max(np.abs(dx)) < 1e-5:
                 break
-        self.poses = list(X)
+        self.poses = X
         return {"iterations": it + 1, "chi2": chi2}
 
     def _optimize_window(self, iterations: int, robust_scale: float,
                          fixed: int | list[int], free_from: int) -> dict:
-        ei, ej = np.array(self.ei, int), np.array(self.ej, int)
+        ei, ej = self.ei.array(), self.ej.array()
         sel = np.nonzero(np.maximum(ei, ej) >= free_from)[0]
         if not len(sel):
             return {"iterations": 0, "chi2": 0.0, "nodes": 0}
         nodes = np.union1d(np.unique(np.concatenate([ei[sel], ej[sel]])),
                            np.arange(free_from, len(self.poses)))
         # the nodes in ascending order: the held ones (older than the window) come first
-        local = {int(k): m for m, k in enumerate(nodes)}
         known = int(np.sum(nodes < free_from))
-        fx = [local[int(k)] for k in np.atleast_1d(fixed) if int(k) in local and k >= free_from]
-        sub = PoseGraph([self.poses[int(k)] for k in nodes],
-                        [local[int(k)] for k in ei[sel]], [local[int(k)] for k in ej[sel]],
-                        [self.z[e] for e in sel], [self.info[e] for e in sel],
-                        [self.loop[e] for e in sel])
+        fx = [int(np.searchsorted(nodes, k)) for k in np.atleast_1d(fixed)
+              if k >= free_from and k < len(self.poses)]
+        sub = PoseGraph(self.poses[nodes], np.searchsorted(nodes, ei[sel]),
+                        np.searchsorted(nodes, ej[sel]), self.z[sel], self.info[sel],
+                        self.loop[sel])
         got = sub._gauss_newton(iterations, robust_scale, fx or ([] if known else [0]), known)
-        for m, k in enumerate(nodes):
-            if k >= free_from:
-                self.poses[int(k)] = sub.poses[m]
-        return {**got, "nodes": int(np.sum(nodes >= free_from))}
+        free = nodes >= free_from
+        self.poses[nodes[free]] = sub.poses[free]
+        return {**got, "nodes": int(np.sum(free))}
 
 
 def hold_nodes(fixed: int | list[int], n: int, size: int | None = None) -> sp.csc_matrix:

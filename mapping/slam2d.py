@@ -316,13 +316,12 @@ class Mapper:
         m.c_node = m.c_node - cut
         m.created = m.created - cut
         m.last_seen = m.last_seen - cut
-        ei, ej = np.array(g.ei, int), np.array(g.ej, int)
+        ei, ej = g.ei.array(), g.ej.array()
         kept = np.nonzero((ei >= cut) & (ej >= cut))[0]
         g.poses = g.poses[cut:]
-        g.ei = [int(ei[e]) - cut for e in kept]
-        g.ej = [int(ej[e]) - cut for e in kept]
+        g.ei, g.ej = ei[kept] - cut, ej[kept] - cut
         for name in ("z", "info", "loop"):
-            setattr(g, name, [getattr(g, name)[e] for e in kept])
+            setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = self.travel[cut:]
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
@@ -499,8 +498,7 @@ class Mapper:
         adjustment alone."""
         g = self.graph
         kept = len(self.scans) == self.count
-        copy = PoseGraph([p.copy() for p in g.poses], list(g.ei), list(g.ej), list(g.z),
-                         list(g.info), list(g.loop))
+        copy = g.copy()
         LP, AP = self.params.loop, self.params.adjust
         do_sweep = kept and sweep and LP.enabled and LP.sweep_every > 0
         NP = NP or self.params.neighbours
@@ -537,7 +535,7 @@ class Mapper:
             # the scans mapped while the job ran: moved with the chain they hang on
             new[ref + 1:stop] = compose(new[ref], relative(old[ref], old[ref + 1:stop]))
         edges = [(j - cut, i - cut, z, info) for j, i, z, info in job.edges if j - cut >= 0]
-        self.graph.poses = list(new)
+        self.graph.poses = new
         if edges:
             self._neighbour_block, self._weighted = _replace_neighbour_edges(
                 self.graph, self._neighbour_block, self._weighted, edges, job.params)
@@ -658,9 +656,8 @@ def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int
         for name in ("ei", "ej", "z", "info", "loop"):
             del getattr(g, name)[n0:n1]
         weighted -= n1 - n0 if weighted >= n1 else 0
-    for e in range(weighted, len(g.ei)):
-        if not g.loop[e]:
-            g.info[e] = g.info[e] * NP.sequential_weight
+    seq = weighted + np.nonzero(~g.loop[weighted:])[0]
+    g.info[seq] = g.info[seq] * NP.sequential_weight
     n0 = len(g.ei)
     for j, i, z, info in edges:
         g.add_edge(j, i, z, info, loop=True)
@@ -732,7 +729,7 @@ class FinishJob:
             X0 = np.array(g.poses)
             X, self.adjusted = adjust(X0, g, associate(self.lines, X0, self.adjust),
                                       self.anchors, self.adjust)
-            g.poses = list(X)
+            g.poses = X
         self.poses = np.array(g.poses)
         return self
 

@@ -156,6 +156,34 @@ def test_windowed_solve_of_a_window_without_edges_changes_nothing():
     assert np.allclose(g.poses[2], 2.0)
 
 
+def test_graph_columns_are_used_as_lists_and_stay_compact():
+    """The graph's columns do what the lists they replaced did (append, index, assign,
+    delete a slice, copy) and hold each edge in ~113 bytes, not a Python object per value."""
+    from cgamap.mapping.posegraph import Column
+
+    g, ref = PoseGraph(), {"ei": [], "ej": [], "z": [], "info": [], "loop": []}
+    for k in range(300):
+        g.add_node([k, 0.0, 0.0])
+    for k in range(1000):
+        e = (k % 299, k % 299 + 1, [k, 1.0, 0.5], np.eye(3) * k, k % 3 == 0)
+        g.add_edge(*e[:4], loop=e[4])
+        for name, v in zip(ref, e, strict=True):
+            ref[name].append(np.asarray(v))
+    copy = g.copy()
+    del g.ei[100:250], g.info[100:250], ref["ei"][100:250], ref["info"][100:250]
+    g.info[7] = g.info[7] * 0.5
+    ref["info"][7] = ref["info"][7] * 0.5
+    assert len(g.ei) == 850 and np.array_equal(np.asarray(g.ei), ref["ei"])
+    assert np.array_equal(np.asarray(g.info), ref["info"]) and g.info[-1][0, 0] == 999
+    assert len(copy.ei) == 1000 and copy.info[7][0, 0] == 7.0  # the copy is its own
+    assert np.array_equal(g.z[[3, 5]], [[3, 1, 0.5], [5, 1, 0.5]]) and g.loop[3]
+    assert list(g.poses[-1]) == [299, 0, 0] and isinstance(g.poses, Column)
+    g.poses = [np.zeros(3)] * 4  # assigned lists become columns
+    assert isinstance(g.poses, Column) and len(g.poses) == 4
+    per_edge = sum(getattr(copy, n)._buf[:1].nbytes for n in ("ei", "ej", "z", "info", "loop"))
+    assert per_edge == 8 + 8 + 24 + 72 + 1
+
+
 def test_ate_is_zero_after_a_rigid_motion_and_rpe_sees_steps():
     t = np.linspace(0, 10, 60)
     ref = np.column_stack([t, np.sin(t), np.cos(t)])
