@@ -66,7 +66,8 @@ class LineMap:
         return np.linalg.norm(self.b - self.a, axis=-1)
 
     def subset(self, keep) -> LineMap:
-        """The segments selected by boolean ``keep`` (contributions follow)."""
+        """The segments selected by boolean ``keep`` (contributions follow; when none of
+        them goes, the result shares this map's contribution arrays)."""
         keep = np.asarray(keep, bool)
         remap = np.where(keep, np.cumsum(keep) - 1, -1)
         out = LineMap(self.a[keep], self.b[keep], self.n_pts[keep], self.centroid[keep],
@@ -75,9 +76,17 @@ class LineMap:
         if len(self.c_seg):
             new = remap[self.c_seg]
             ok = new >= 0
-            out.c_seg, out.c_node, out.c_n = new[ok], self.c_node[ok], self.c_n[ok]
-            out.c_cent, out.c_scat = self.c_cent[ok], self.c_scat[ok]
-            out.c_a, out.c_b = self.c_a[ok], self.c_b[ok]
+            if ok.all():
+                # no contribution goes (they were redirected to the segments kept): the
+                # contribution rows are shared, not copied -- thousands of them, re-indexed
+                # whenever a scan fuses two map segments into one
+                out.c_seg, out.c_node, out.c_n = new, self.c_node, self.c_n
+                out.c_cent, out.c_scat, out.c_a, out.c_b = (self.c_cent, self.c_scat,
+                                                            self.c_a, self.c_b)
+            else:
+                out.c_seg, out.c_node, out.c_n = new[ok], self.c_node[ok], self.c_n[ok]
+                out.c_cent, out.c_scat = self.c_cent[ok], self.c_scat[ok]
+                out.c_a, out.c_b = self.c_a[ok], self.c_b[ok]
         return out
 
     def add_contributions(self, target: np.ndarray, node: int, seg_l: Segments) -> None:
