@@ -131,10 +131,10 @@ def _moments(p: np.ndarray, starts: np.ndarray, ends: np.ndarray,
     cs = _prefix_moments(p) if cs is None else cs
     sums = cs[ends] - cs[starts]
     c = sums[:, :2] / n[:, None]
-    sxx = sums[:, 2] - n * c[:, 0] ** 2
-    sxy = sums[:, 3] - n * c[:, 0] * c[:, 1]
-    syy = sums[:, 4] - n * c[:, 1] ** 2
-    S = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
+    S = np.empty((len(n), 2, 2))
+    S[:, 0, 0] = sums[:, 2] - n * c[:, 0] ** 2
+    S[:, 0, 1] = S[:, 1, 0] = sums[:, 3] - n * c[:, 0] * c[:, 1]
+    S[:, 1, 1] = sums[:, 4] - n * c[:, 1] ** 2
     return n, c, S
 
 
@@ -150,52 +150,39 @@ def scan_points(ranges: np.ndarray, angle_min: float, angle_increment: float,
 
 def _split(p: np.ndarray, rng: np.ndarray, starts: np.ndarray, ends: np.ndarray,
            params: SegmentParams) -> tuple[np.ndarray, np.ndarray]:
-    """Iterative end-point fit over all segments at once, level by level."""
-    done_s, done_e = [], []
-    tol_all = params.split_dist + params.split_dist_per_m * rng
-    while len(starts):
-        small = (ends - starts) < max(params.min_points, 3)
-        done_s.append(starts[small])
-        done_e.append(ends[small])
-        starts, ends = starts[~small], ends[~small]
-        if not len(starts):
-            break
-        lens = ends - starts
-        seg_id = np.repeat(np.arange(len(starts)), lens)
-        idx = np.arange(lens.sum()) - np.repeat(np.cumsum(lens) - lens, lens) + starts[seg_id]
-        a, b = p[starts], p[ends - 1]
-        d = b - a
-        dn = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
-        rel = p[idx] - a[seg_id]
-        dist = np.abs(rel[:, 0] * dn[seg_id, 1] - rel[:, 1] * dn[seg_id, 0])
-        excess = dist - tol_all[idx]
-        offs = np.cumsum(lens) - lens
-        worst = np.maximum.reduceat(excess, offs)
-        split = worst > 0
-        done_s.append(starts[~split])
-        done_e.append(ends[~split])
+    """Iterative end-point fit over all segments at once, level by level.  The segments of
+    a level partition the points (``starts``, ``ends`` must, as the gap clusters do), so
+    each level is one pass over all points with their segment's ids: a segment that did
+    not split (or is too short to) gives the same answer again, which is cheaper than
+    tracking which segments are finished."""
+    n = len(p)
+    tol = params.split_dist + params.split_dist_per_m * rng
+    small = max(params.min_points, 3)
+    bound = np.zeros(n, bool)
+    bound[starts] = True
+    while True:
+        st = np.flatnonzero(bound)
+        en = np.append(st[1:], n)
+        seg_id = np.cumsum(bound) - 1
+        a, d = p[st], p[en - 1] - p[st]
+        dn = d / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)[:, None]
+        rel = p - a[seg_id]
+        dseg = dn[seg_id]
+        excess = np.abs(rel[:, 0] * dseg[:, 1] - rel[:, 1] * dseg[:, 0]) - tol
+        worst = np.maximum.reduceat(excess, st)
+        split = (worst > 0) & (en - st >= small)
         if not split.any():
-            break
-        # position of the worst point in each splitting segment
-        is_worst = excess == worst[seg_id]
-        first = np.full(len(starts), -1)
-        hit = np.nonzero(is_worst)[0]
-        first[seg_id[hit[::-1]]] = idx[hit[::-1]]  # reversed so the first hit wins
-        k = first[split]
-        s0, e0 = starts[split], ends[split]
-        k = np.clip(k, s0 + 1, e0 - 1)
-        starts = np.concatenate([s0, k])
-        ends = np.concatenate([k, e0])
-    s = np.concatenate(done_s) if done_s else np.zeros(0, int)
-    e = np.concatenate(done_e) if done_e else np.zeros(0, int)
-    order = np.argsort(s)
-    return s[order], e[order]
+            return st, en
+        # the first worst point of each splitting segment, kept off its end points
+        hit = np.flatnonzero((excess == worst[seg_id]) & split[seg_id])
+        first = hit[np.append(True, seg_id[hit[1:]] != seg_id[hit[:-1]])]
+        sid = seg_id[first]
+        bound[np.clip(first, st[sid] + 1, en[sid] - 1)] = True
 
 
-def _merge(p, starts, ends, params: SegmentParams, is_break: np.ndarray):
+def _merge(p, starts, ends, params: SegmentParams, is_break: np.ndarray, cs: np.ndarray):
     """Greedy merge of adjacent collinear segments (joint TLS residual under threshold);
-    never across a gap break."""
-    cs = _prefix_moments(p)
+    never across a gap break.  ``cs``: the points' :func:`_prefix_moments`."""
     while len(starts) > 1:
         s2, e2 = starts[:-1], ends[1:]
         contiguous = (ends[:-1] == starts[1:]) & ~is_break[starts[1:]]
@@ -260,8 +247,9 @@ def extract_segments(ranges: np.ndarray, angle_min: float, angle_increment: floa
         out = empty_segments()
         out.points = p
         return out
-    starts, ends = _merge(p, starts, ends, params, is_break)
-    n, c, S = _moments(p, starts, ends)
+    cs = _prefix_moments(p)
+    starts, ends = _merge(p, starts, ends, params, is_break, cs)
+    n, c, S = _moments(p, starts, ends, cs)
     d, ms, spread = tls_from_moments(n, c, S)
     # end points: first and last point projected on the refitted line
     ta = np.sum((p[starts] - c) * d, axis=-1)
