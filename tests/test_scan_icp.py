@@ -53,3 +53,6 @@ def test_agreement_tells_the_true_trajectory_from_a_jittered_one():
     assert out["truth"]["trans_median_m"] < 0.005 and out["truth"]["rot_median_deg"] < 0.1
     assert out["jittered"]["trans_median_m"] > 0.02 and out["jittered"]["rot_median_deg"] > 0.5
     assert out["icp_both_ways"]["trans_median_m"] < 0.002
+    # a long run is sampled: pairs evenly spread, the same figures' kind
+    few = icp_agreement(scans, {"truth": truth, "jittered": jitter}, jitter, max_pairs=5)
+    assert few["truth"]["pairs"] == 5 and few["jittered"]["trans_median_m"] > 0.02
