@@ -97,6 +97,29 @@ class EdgeArrays:
     robust: np.ndarray
     _layouts: dict = field(default_factory=dict, compare=False, repr=False)
 
+    def __len__(self) -> int:
+        return len(self.i)
+
+    @classmethod
+    def of(cls, i, j, z, info, robust=True) -> EdgeArrays:
+        """Edges from array-likes; ``robust`` one flag for all or one per edge."""
+        i = np.asarray(i, np.int64).reshape(-1)
+        return cls(i, np.asarray(j, np.int64).reshape(-1), np.asarray(z, float).reshape(-1, 3),
+                   np.asarray(info, float).reshape(-1, 3, 3),
+                   np.broadcast_to(np.asarray(robust, bool), i.shape).copy())
+
+    @classmethod
+    def concat(cls, parts: list[EdgeArrays]) -> EdgeArrays:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.of([], [], [], [])
+        return cls(*(np.concatenate([getattr(p, f) for p in parts])
+                     for f in ("i", "j", "z", "info", "robust")))
+
+    def select(self, idx) -> EdgeArrays:
+        return EdgeArrays(self.i[idx], self.j[idx], self.z[idx], self.info[idx],
+                          self.robust[idx])
+
     def layout(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """Where the edges' 3x3 blocks go in the (3n, 3n) normal matrix, the same at every
         iteration: for the blocks (i,i), (j,j), (i,j), (j,i) of every edge, in that order,
@@ -214,6 +237,14 @@ class PoseGraph:
         self.info.append(info)
         self.loop.append(loop)
 
+    def add_edges(self, edges: EdgeArrays) -> None:
+        """Append many edges at once (their ``robust`` flags as the loop flags)."""
+        self.ei.extend(edges.i)
+        self.ej.extend(edges.j)
+        self.z.extend(edges.z)
+        self.info.extend(edges.info)
+        self.loop.extend(edges.robust)
+
     def edge_arrays(self) -> EdgeArrays:
         """The edges as arrays (copies: a solve's layout cache must not see later edits)."""
         return EdgeArrays(np.array(self.ei, np.int64), np.array(self.ej, np.int64),
@@ -228,59 +259,60 @@ class PoseGraph:
         return e
 
     def normal_equations(self, X: np.ndarray, robust_scale: float,
-                         edges: EdgeArrays | None = None
+                         edges: EdgeArrays | None = None, chunk: int = 1 << 16
                          ) -> tuple[sp.csr_matrix, np.ndarray, float]:
         """Gauss-Newton normal equations of the edges at poses ``X`` (n, 3): the sparse
         (3n, 3n) information H, the gradient g (the step solves H dx = -g) and the weighted
         chi^2; loop edges carry Cauchy weights of scale ``robust_scale``.  No node is held.
-        ``edges``: :meth:`edge_arrays`, when the caller solves repeatedly."""
+        ``edges``: :meth:`edge_arrays`, when the caller solves repeatedly.  The edges are
+        taken ``chunk`` at a time: each edge's Jacobian blocks and products take ~430 bytes,
+        and a daemon's graph has 600 000 edges."""
         n = len(X)
         E = self.edge_arrays() if edges is None else edges
-        i, j = E.i, E.j
-        e = relative(X[i], X[j]) - E.z
-        e[:, 2] = wrap(e[:, 2])
-        m2 = np.einsum("ki,kij,kj->k", e, E.info, e)
-        w = np.where(E.robust, 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
-        c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
-        d = X[j, :2] - X[i, :2]
-        A = np.zeros((len(i), 3, 3))   # de/dx_i
-        B = np.zeros((len(i), 3, 3))   # de/dx_j
-        A[:, 0, 0], A[:, 0, 1] = -c, -s
-        A[:, 1, 0], A[:, 1, 1] = s, -c
-        A[:, 0, 2] = -s * d[:, 0] + c * d[:, 1]
-        A[:, 1, 2] = -c * d[:, 0] - s * d[:, 1]
-        A[:, 2, 2] = -1.0
-        B[:, 0, 0], B[:, 0, 1] = c, s
-        B[:, 1, 0], B[:, 1, 1] = -s, c
-        B[:, 2, 2] = 1.0
-        Wo = E.info * w[:, None, None]
-        AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
-        del Wo
-        r3 = np.arange(3)
-        g = (np.bincount((3 * i[:, None] + r3).ravel(),
-                         np.einsum("kij,kj->ki", AtW, e).ravel(), 3 * n)
-             + np.bincount((3 * j[:, None] + r3).ravel(),
-                           np.einsum("kij,kj->ki", BtW, e).ravel(), 3 * n))
+        k = len(E.i)
         # 3x3 blocks: each edge's two diagonal blocks, its coupling block and that block's
-        # transpose, summed where they share a place (:meth:`EdgeArrays.layout`); made one
-        # at a time (at 600 000 edges each is 40 MB)
-        k = len(i)
+        # transpose, summed where they share a place (:meth:`EdgeArrays.layout`)
         inv, cols, indptr, nb = E.layout(n)
         data = np.zeros((nb, 9))
-
-        def add(part: int, M: np.ndarray) -> None:
-            at, M = inv[part * k:(part + 1) * k], M.reshape(k, 9)
-            for q in range(9):
-                data[:, q] += np.bincount(at, M[:, q], nb)
-
-        add(0, AtW @ A)
-        add(1, BtW @ B)
-        Hij = AtW @ B
-        add(2, Hij)
-        add(3, np.swapaxes(Hij, 1, 2))
-        del A, B, AtW, BtW, Hij
+        g = np.zeros(3 * n)
+        chi2 = 0.0
+        r3 = np.arange(3)
+        for c0 in range(0, k, chunk):
+            c1 = min(c0 + chunk, k)
+            i, j = E.i[c0:c1], E.j[c0:c1]
+            e = relative(X[i], X[j]) - E.z[c0:c1]
+            e[:, 2] = wrap(e[:, 2])
+            info = E.info[c0:c1]
+            m2 = np.einsum("ki,kij,kj->k", e, info, e)
+            w = np.where(E.robust[c0:c1], 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
+            chi2 += float(np.sum(w * m2))
+            c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
+            d = X[j, :2] - X[i, :2]
+            A = np.zeros((len(i), 3, 3))   # de/dx_i
+            B = np.zeros((len(i), 3, 3))   # de/dx_j
+            A[:, 0, 0], A[:, 0, 1] = -c, -s
+            A[:, 1, 0], A[:, 1, 1] = s, -c
+            A[:, 0, 2] = -s * d[:, 0] + c * d[:, 1]
+            A[:, 1, 2] = -c * d[:, 0] - s * d[:, 1]
+            A[:, 2, 2] = -1.0
+            B[:, 0, 0], B[:, 0, 1] = c, s
+            B[:, 1, 0], B[:, 1, 1] = -s, c
+            B[:, 2, 2] = 1.0
+            Wo = info * w[:, None, None]
+            AtW, BtW = np.swapaxes(A, 1, 2) @ Wo, np.swapaxes(B, 1, 2) @ Wo
+            del Wo
+            g += (np.bincount((3 * i[:, None] + r3).ravel(),
+                              np.einsum("kij,kj->ki", AtW, e).ravel(), 3 * n)
+                  + np.bincount((3 * j[:, None] + r3).ravel(),
+                                np.einsum("kij,kj->ki", BtW, e).ravel(), 3 * n))
+            Hij = AtW @ B
+            for part, M in enumerate((AtW @ A, BtW @ B, Hij, np.swapaxes(Hij, 1, 2))):
+                at, M = inv[part * k + c0:part * k + c1], M.reshape(c1 - c0, 9)
+                for q in range(9):
+                    data[:, q] += np.bincount(at, M[:, q], nb)
+            del A, B, AtW, BtW, Hij, M
         H = sp.bsr_matrix((data.reshape(-1, 3, 3), cols, indptr), shape=(3 * n,) * 2).tocsr()
-        return H, g, float(np.sum(w * m2))
+        return H, g, chi2
 
     def optimize(self, iterations: int = 10, robust_scale: float = ROBUST_SCALE,
                  fixed: int | list[int] = 0, free_from: int = 0) -> dict:

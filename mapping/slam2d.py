@@ -33,7 +33,7 @@ from .matching import LineIndex
 from .odometry import compose_pose2d as compose
 from .odometry import relative
 from .odometry import wrap_angle as wrap
-from .posegraph import PoseGraph
+from .posegraph import EdgeArrays, PoseGraph
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize, rivals
 from .segments import SegmentParams, Segments, extract_segments
 
@@ -534,9 +534,12 @@ class Mapper:
         if ref >= 0 and stop > ref + 1:
             # the scans mapped while the job ran: moved with the chain they hang on
             new[ref + 1:stop] = compose(new[ref], relative(old[ref], old[ref + 1:stop]))
-        edges = [(j - cut, i - cut, z, info) for j, i, z, info in job.edges if j - cut >= 0]
+        E = job.edges
+        keep = E.i - cut >= 0
+        edges = EdgeArrays(E.i[keep] - cut, E.j[keep] - cut, E.z[keep], E.info[keep],
+                           E.robust[keep])
         self.graph.poses = new
-        if edges:
+        if len(edges):
             self._neighbour_block, self._weighted = _replace_neighbour_edges(
                 self.graph, self._neighbour_block, self._weighted, edges, job.params)
             self.neighbour_edges = len(edges)
@@ -611,10 +614,11 @@ def round_params(NP: NeighbourParams, r: int) -> NeighbourParams:
 
 def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
                       pairs: np.ndarray | None = None,
-                      stop=None) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+                      stop=None) -> EdgeArrays:
     """The finishing pass's matching (:class:`NeighbourParams`): scan i's segments against
     scan j's for every neighbour pair (solved in batches, :func:`.correction.correct_batch`);
-    the good matches as edges (j, i, z, info) carrying the matches' own information.
+    the good matches as edges (:class:`.posegraph.EdgeArrays`, i the earlier scan of each
+    pair) carrying the matches' own information.
     ``pairs`` defaults to :func:`neighbour_pairs`; ``stop()`` true between batches abandons
     the pass (returns [])."""
     pairs = neighbour_pairs(X, scans, NP) if pairs is None else pairs
@@ -624,10 +628,10 @@ def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
     # small scans next to a cluttered one would otherwise cost as much as the clutter
     counts = np.array([len(a) for a, _ in scans])
     order = np.lexsort((counts[pairs[:, 0]], counts[pairs[:, 1]])) if len(pairs) else []
-    new_edges = []
+    found = []
     for c0 in range(0, len(pairs), NP.chunk):
         if stop is not None and stop():
-            return []
+            return EdgeArrays.of([], [], [], [])
         j, i = pairs[order[c0:c0 + NP.chunk]].T
         src_a, src_b = _pad([scans[k] for k in i], 0.0)
         dst_a, dst_b = _pad([scans[k] for k in j], 1e6)  # padding never matches
@@ -640,14 +644,16 @@ def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
         info = 0.5 * (info + np.swapaxes(info, 1, 2))
         best = np.linalg.eigvalsh(info[:, :2, :2])[:, -1]  # the best-known direction
         ok = (best >= NP.max_std ** -2) & (res.matched_fraction >= NP.min_matched)
-        for k in np.nonzero(ok)[0]:
-            new_edges.append((int(j[k]), int(i[k]), res.pose[k], info[k]))
-    new_edges.sort(key=lambda e: (e[1], e[0]))  # the graph's edge order: the pairs' order
-    return new_edges
+        found.append(EdgeArrays.of(j[ok], i[ok], res.pose[ok], info[ok]))
+    # arrays, not an object per edge: a 12 000-scan pass finds 400 000 edges.  In the
+    # graph's edge order, the pairs' order (by later node, then earlier)
+    E = EdgeArrays.concat(found)
+    return E.select(np.lexsort((E.i, E.j)))
 
 
 def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int,
-                             edges: list, NP: NeighbourParams) -> tuple[tuple[int, int], int]:
+                             edges: EdgeArrays, NP: NeighbourParams
+                             ) -> tuple[tuple[int, int], int]:
     """Put a neighbour pass's edges (robust) in ``g`` in place of the previous pass's (the
     edges ``block``); the scan-to-map steps' edges from ``weighted`` on are down-weighted to
     ``sequential_weight`` (the earlier ones already are).  Returns the new block and mark."""
@@ -659,8 +665,7 @@ def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int
     seq = weighted + np.nonzero(~g.loop[weighted:])[0]
     g.info[seq] = g.info[seq] * NP.sequential_weight
     n0 = len(g.ei)
-    for j, i, z, info in edges:
-        g.add_edge(j, i, z, info, loop=True)
+    g.add_edges(EdgeArrays.of(edges.i, edges.j, edges.z, edges.info, True))
     return (n0, len(g.ei)), len(g.ei)
 
 
@@ -680,7 +685,8 @@ class FinishJob:
     weighted: int
     sweep: LoopParams | None = None            # tracking closures first (None: not)
     travel: np.ndarray | None = None           # odometry distance per node, for the sweep
-    edges: list = field(default_factory=list)  # the sweep's and the last round's edges
+    # the sweep's and the last round's edges (i the earlier node of each)
+    edges: EdgeArrays = field(default_factory=lambda: EdgeArrays.of([], [], [], []))
     poses: np.ndarray | None = None            # the snapshot's nodes, re-optimised
     pairs: int = 0                             # scan pairs matched, all rounds
     sweep_edges: int = 0
@@ -699,13 +705,13 @@ class FinishJob:
         g = self.graph
         if self.nodes < 2:
             return self
-        swept: list = []
+        swept = EdgeArrays.of([], [], [], [])
         if self.sweep is not None:
             # before the rounds: each revisit tied to its earlier visit's submap; the
             # edges stay in the block with every round's
             swept = sweep_matches(np.array(g.poses), self.scans, self.travel, self.sweep, stop)
             self.sweep_edges = len(swept)
-            if swept:
+            if len(swept):
                 self.block, self.weighted = _replace_neighbour_edges(
                     g, self.block, self.weighted, swept, NP)
                 g.optimize(fixed=self.anchors)
@@ -717,14 +723,15 @@ class FinishJob:
             self.pairs += len(pairs)
             got = neighbour_matches(X, self.scans, rp, pairs, stop)
             if stop is not None and stop():
-                self.edges, self.poses = [], None
+                self.edges, self.poses = EdgeArrays.of([], [], [], []), None
                 return self
-            if not got:
+            if not len(got):
                 continue
+            both = EdgeArrays.concat([swept, got])
             self.block, self.weighted = _replace_neighbour_edges(
-                g, self.block, self.weighted, swept + got, NP)
+                g, self.block, self.weighted, both, NP)
             g.optimize(fixed=self.anchors)
-            self.edges = swept + got
+            self.edges = both
         if self.lines is not None and self.adjust is not None:
             X0 = np.array(g.poses)
             X, self.adjusted = adjust(X0, g, associate(self.lines, X0, self.adjust),
@@ -735,19 +742,20 @@ class FinishJob:
 
 
 def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams,
-                  stop=None) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+                  stop=None) -> EdgeArrays:
     """:meth:`Mapper._sweep_closures` from kept scans instead of the map's contributions, all
     candidates solved together: every ``sweep_every``-th scan against the submap (scans
     +- ``window``) of its nearest earlier visit within ``sweep_radius``; a tracking closure
-    that fixes the pose in every direction and fits becomes an edge (j, i, z, info)."""
+    that fixes the pose in every direction and fits becomes an edge (j to i, robust)."""
     n = len(X)
     i = np.arange(0, n, LP.sweep_every)
     last = np.minimum(np.searchsorted(travel, travel[i] - LP.min_travel, side="right") - 1,
                       i - LP.min_separation)
     counts = np.array([len(a) for a, _ in scans])
     i, last = i[(last >= 0) & (counts[i] >= 2)], last[(last >= 0) & (counts[i] >= 2)]
+    none = EdgeArrays.of([], [], [], [])
     if not len(i):
-        return []
+        return none
     # the nearest earlier visit: among each scan's nearest few, the first old enough
     k = min(n, 64)
     d, nb = cKDTree(X[:, :2]).query(X[i, :2], k=k, distance_upper_bound=LP.sweep_radius)
@@ -758,11 +766,11 @@ def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams
     j = nb[has, np.argmax(ok[has], axis=1)]
     st, sr = LP.sigma
     info = np.diag([st ** -2, st ** -2, sr ** -2])
-    edges = []
+    found = []
     chunk = 128  # the submaps are ~window * 2 + 1 scans: more segments per problem
     for c0 in range(0, len(i), chunk):
         if stop is not None and stop():
-            return []
+            return none
         ii, jj, ll = i[c0:c0 + chunk], j[c0:c0 + chunk], last[c0:c0 + chunk]
         subs, keep = [], []
         for a, (jk, lk) in enumerate(zip(jj, ll, strict=True)):  # per scan pair, not per point
@@ -785,9 +793,9 @@ def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams
         std = np.sqrt(np.linalg.eigvalsh(res.cov[:, :2, :2])[:, -1])
         good = (std <= LP.max_std) & (res.matched_fraction >= max(0.5, LP.tracking_score)) & (
             res.rms <= 0.05)
-        for q in np.nonzero(good)[0]:
-            edges.append((int(jj[q]), int(ii[q]), res.pose[q], info))
-    return edges
+        found.append(EdgeArrays.of(jj[good], ii[good], res.pose[good],
+                                   np.broadcast_to(info, (int(good.sum()), 3, 3))))
+    return EdgeArrays.concat(found)
 
 
 def _move(p: np.ndarray, pose: np.ndarray) -> np.ndarray:

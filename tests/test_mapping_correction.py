@@ -232,6 +232,10 @@ def test_normal_equations_are_the_edges_jacobians_summed():
     assert np.allclose(grad, g_ref, atol=1e-4 * np.abs(g_ref).max())
     assert chi2 == pytest.approx(chi2_ref)
     assert np.allclose(H.toarray(), H.toarray().T)
+    # taken a few edges at a time (a long run's graph), the same equations
+    Hc, gc, chi2c = g.normal_equations(X, scale, chunk=3)
+    assert np.allclose(Hc.toarray(), H.toarray(), rtol=1e-12, atol=1e-9)
+    assert np.allclose(gc, grad, rtol=1e-12, atol=1e-9) and chi2c == pytest.approx(chi2)
 
 
 @pytest.mark.parametrize("cg_iterations", [400, 1])
