@@ -3,8 +3,8 @@
 high``, as a subprocess so that its peak memory is its own.  The figures of a log the size of
 the larger classic ones (ACES has 7 374 scans): per-scan time, the finishing pass, the whole
 command's wall time and peak resident memory, and the ATE against the simulation's truth.
-(Measured once at 200 laps, 12 254 scans: 714 MB peak, 1 032 MB before the finishing pass
-kept its edges as arrays.)"""
+(Measured once with a scan every half second, 12 254 scans: 714 MB peak, 1 032 MB before the
+finishing pass kept its edges as arrays.)"""
 
 from __future__ import annotations
 
