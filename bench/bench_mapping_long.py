@@ -1,7 +1,7 @@
 """2D mapping of a long log: `cgamap map build` on 100 laps of the simulated loop world (a
 180-beam scan a second, 6 127 scans, LMS-like noise, written as CARMEN), ``--odom-noise
 high``, as a subprocess so that its peak memory is its own.  The figures of a log the size of
-the larger classic ones (ACES has 7 374 scans): per-scan time, the finishing pass, the whole
+the larger classic ones (thousands of scans): per-scan time, the finishing pass, the whole
 command's wall time and peak resident memory, and the ATE against the simulation's truth.
 (Measured once with a scan every half second, 12 254 scans: 714 MB peak, 1 032 MB before the
 finishing pass kept its edges as arrays.)"""
