@@ -33,7 +33,7 @@ from .matching import LineIndex
 from .odometry import compose_pose2d as compose
 from .odometry import relative
 from .odometry import wrap_angle as wrap
-from .posegraph import EdgeArrays, PoseGraph
+from .posegraph import Column, EdgeArrays, PoseGraph
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize, rivals
 from .segments import SegmentParams, Segments, extract_segments
 
@@ -178,7 +178,8 @@ class Mapper:
         self.loops = 0
         self.optimizations = 0
         self.last_loop = -10 ** 9
-        self.travel: list[float] = []   # odometry distance from the start, per node
+        # odometry distance from the start, per node (an array: each scan searches it)
+        self.travel = Column((), float)
         self.calib_n = 0
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
@@ -241,7 +242,7 @@ class Mapper:
             i = self.graph.add_node(pose)
             if i and i not in self.anchors:
                 self.anchors.append(i)
-            self.travel.append(self.travel[-1] if self.travel else 0.0)
+            self.travel.append(self.travel[-1] if len(self.travel) else 0.0)
             self.last_odom = odom_l
             self._merge(seg, i, None)
             return StepResult(pose, len(seg), None)
@@ -323,7 +324,7 @@ class Mapper:
         for name in ("z", "info", "loop"):
             setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
-        self.travel = self.travel[cut:]
+        self.travel = Column((), float, self.travel[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
         # edge numbers of the neighbour block shift with the edges dropped before them
         n0, n1 = self._neighbour_block
@@ -423,7 +424,7 @@ class Mapper:
         """The newest node that node i may close a loop with (-1: none yet): at least
         ``min_separation`` scans and ``min_travel`` metres of odometry back."""
         LP = self.params.loop
-        travel = np.asarray(self.travel)
+        travel = self.travel.array()
         by_dist = int(np.searchsorted(travel, travel[i] - LP.min_travel, side="right")) - 1
         return min(by_dist, i - LP.min_separation)
 
