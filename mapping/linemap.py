@@ -91,13 +91,28 @@ class LineMap:
 
     def add_contributions(self, target: np.ndarray, node: int, seg_l: Segments) -> None:
         k = len(target)
-        self.c_seg = np.concatenate([self.c_seg, target])
-        self.c_node = np.concatenate([self.c_node, np.full(k, node)])
-        self.c_n = np.concatenate([self.c_n, seg_l.n.astype(float)])
-        self.c_cent = np.concatenate([self.c_cent, seg_l.centroid])
-        self.c_scat = np.concatenate([self.c_scat, seg_l.scatter])
-        self.c_a = np.concatenate([self.c_a, seg_l.a])
-        self.c_b = np.concatenate([self.c_b, seg_l.b])
+        for name, rows in (("c_seg", target), ("c_node", np.full(k, node)),
+                           ("c_n", seg_l.n), ("c_cent", seg_l.centroid),
+                           ("c_scat", seg_l.scatter), ("c_a", seg_l.a), ("c_b", seg_l.b)):
+            setattr(self, name, self._appended(name, rows))
+
+    def _appended(self, name: str, rows: np.ndarray) -> np.ndarray:
+        """Contribution column ``name`` with ``rows`` after it.  The columns are prefixes of
+        buffers with room to grow (every scan adds a few rows to tens of thousands, and a
+        copy each time made a long run's steps slower the longer it ran); a column replaced
+        meanwhile (a subset, a compaction) gets a new buffer.  Rows are only ever written
+        past a column's end, so views handed out earlier never change."""
+        cur = getattr(self, name)
+        bufs = self.__dict__.setdefault("_buffers", {})  # not a field: never saved
+        buf = bufs.get(name)
+        n, k = len(cur), len(rows)
+        if (buf is None or cur.base is not buf or len(buf) < n + k or cur.ctypes.data
+                != buf.ctypes.data or buf.dtype != cur.dtype):
+            buf = np.empty((max(2 * (n + k), 256), *cur.shape[1:]), cur.dtype)
+            buf[:n] = cur
+            bufs[name] = buf
+        buf[n:n + k] = rows
+        return buf[:n + k]
 
     def append(self, seg: Segments, stamp: int) -> None:
         k = len(seg)

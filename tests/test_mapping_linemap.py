@@ -73,6 +73,34 @@ def test_age_out_and_dedupe():
     assert dedupe(m2) == 1 and len(m2) == 1
 
 
+def test_contributions_grow_in_place_and_earlier_views_stay():
+    """Contribution columns grow into spare room (no copy per scan), across subsets that
+    replace or share them; what was read before an append is never overwritten."""
+    m, want = LineMap(), []
+    for k in range(60):
+        seg = _seg([[k, 0.0], [k, 5.0]], [[k + 0.5, 0.0], [k, 6.0]])
+        m.append(seg, k)
+        m.add_contributions(np.arange(len(m) - 2, len(m)), k, seg)
+        want += [(k, len(m) - 2), (k, len(m) - 1)]
+        if k == 20:
+            early = m.c_node
+            early_copy = early.copy()
+        if k in (30, 45):  # a subset sharing the rows, then one dropping some
+            keep = np.ones(len(m), bool)
+            if k == 45:
+                keep[:4] = False
+                want = [(n, s - 4) for n, s in want if s >= 4]
+            m2 = m.subset(keep)
+            m.a, m.b, m.c_seg, m.c_node = m2.a, m2.b, m2.c_seg, m2.c_node
+            m.c_n, m.c_cent, m.c_scat, m.c_a, m.c_b = m2.c_n, m2.c_cent, m2.c_scat, m2.c_a, \
+                m2.c_b
+            m.n_pts, m.centroid, m.scatter = m2.n_pts, m2.centroid, m2.scatter
+            m.n_obs, m.created, m.last_seen = m2.n_obs, m2.created, m2.last_seen
+    assert list(zip(m.c_node.tolist(), m.c_seg.tolist(), strict=True)) == want
+    assert np.array_equal(early, early_copy)
+    assert len(m.c_a) == len(m.c_scat) == len(want) and m.c_n.dtype == float
+
+
 def test_refresh_follows_new_poses():
     m = LineMap()
     w = world(ROOM)
