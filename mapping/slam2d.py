@@ -431,11 +431,15 @@ class Mapper:
     def _submap(self, X: np.ndarray, j: int, last: int) -> LineMap | None:
         """The segments seen from scans j +- window (none after ``last``), in j's frame."""
         LP = self.params.loop
-        sel = (np.abs(self.map.c_node - j) <= LP.window) & (self.map.c_node <= last) & (
-            self.map.c_node >= 0)
-        if sel.sum() < 3:
+        # contributions are kept in node order (appended scan by scan; subsets, compaction
+        # and adopted maps' -1 keep it): the window is a slice, found in log time (a mask
+        # over a long run's 400 000 contributions took ~1.5 ms a try)
+        c_node = self.map.c_node
+        sel = slice(int(np.searchsorted(c_node, max(j - LP.window, 0), side="left")),
+                    int(np.searchsorted(c_node, min(j + LP.window, last), side="right")))
+        if sel.stop - sel.start < 3:
             return None
-        nodes = self.map.c_node[sel]
+        nodes = c_node[sel]
         rel = relative(X[j], X[nodes])
         c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
         R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)

@@ -37,6 +37,7 @@ def test_bounded_graph_keeps_tracking():
     assert sizes[-1, 2] <= 60
     # every node index the map and the graph hold is a live node
     assert m.map.c_node.min() >= 0 and m.map.c_node.max() < m.count
+    assert np.all(np.diff(m.map.c_node) >= 0)  # in node order: closures slice it by node
     assert max(max(m.graph.ei), max(m.graph.ej)) < m.count and 0 in m.anchors
     # the online poses (as the robot saw them, scan by scan) stay on the truth
     err = ate(est, truth)
