@@ -136,7 +136,9 @@ def run_build(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--log: {exc}; cannot replay without odometry") from None
     params = MapperParams(loop=LoopParams(enabled=not args.no_loop_closure))
-    res = build_map(scans, odo, params, _progress("map build", args.quiet))
+    res = build_map(scans, odo, params, _progress("map build", args.quiet),
+                    None if args.quiet else lambda line: print(f"map build: {line}",
+                                                               file=sys.stderr, flush=True))
     meta = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
             "scans": len(scans), "frame": "map = the log's first pose"}
     if "alignment_to_reference" in res.report:

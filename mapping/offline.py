@@ -54,9 +54,13 @@ def log_odometry(scans: Sequence, preset: str = "none", seed: int = 0
 
 
 def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None = None,
-              progress: Callable[[int, int], None] | None = None) -> BuildResult:
+              progress: Callable[[int, int], None] | None = None,
+              status: Callable[[str], None] | None = None) -> BuildResult:
     """Run the mapper over ``scans`` with odometry poses (n, 3); score against the scans'
-    ``pose_ref`` when every scan has one."""
+    ``pose_ref`` when every scan has one.  ``progress(k, n)`` after each scan; ``status``
+    gets a line as each later stage starts and ends (on a long log the finishing pass and
+    the scoring take minutes, with no scan count to show)."""
+    say = status or (lambda line: None)
     odometry = np.asarray(odometry, dtype=float)
     mapper = Mapper(params, initial_pose=odometry[0] if len(odometry) else (0, 0, 0))
     times = []
@@ -69,8 +73,10 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         if progress is not None:
             progress(k + 1, n)
     t = time.perf_counter()
+    say(f"finishing pass over {mapper.count} scans (neighbour matching, graph, walls) ...")
     poses = mapper.finish()
     t_final = time.perf_counter() - t
+    say(f"finishing pass done in {t_final:.1f} s")
     med, p95 = _stats_ms(times)
     report = {
         "scans_processed": n,
@@ -86,6 +92,7 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
     }
     ref = [getattr(s, "pose_ref", None) for s in scans]
     if n >= 2 and all(r is not None for r in ref):
+        say("scoring against the log's reference poses (ATE, RPE, ICP agreement) ...")
         R = np.array(ref, dtype=float)
         report.update({k: round(v, 4) if isinstance(v, float) else v
                        for k, v in {**ate(poses, R), **rpe(poses, R)}.items()})

@@ -121,6 +121,17 @@ def test_cli_build_and_relocalize(short_log, tmp_path, capsys):
     assert res["trials"] == 20 and res["success_rate"] >= 0.6  # measured 0.8
 
 
+def test_cli_build_says_what_it_does_after_the_scans(short_log, tmp_path, capsys):
+    # a long log's finishing pass and scoring take minutes: each stage is announced
+    assert main(["map", "build", "--log", str(short_log), "--out", str(tmp_path / "m"),
+                 "--odom-noise", "low", "--seed", "3"]) == 0
+    err = capsys.readouterr().err
+    assert "map build: 120/120" in err
+    assert "map build: finishing pass over 120 scans" in err
+    assert "map build: finishing pass done in" in err
+    assert err.index("finishing pass done") < err.index("scoring against the log's reference")
+
+
 def test_cli_usage_errors(tmp_path, capsys):
     assert main(["map", "build", "--log", str(tmp_path / "nope.log"), "--out",
                  str(tmp_path)]) == 2
