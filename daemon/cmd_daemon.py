@@ -187,8 +187,10 @@ def _print_status(st: dict) -> int:
     print(f"map         {st['map']['segments']} segments, {st['map']['planes']} planes "
           f"(version {st['map']['version']})")
     c = st["counts"]
+    late = c.get("scans_out_of_order", 0)
     print(f"scans       {c.get('scans', 0)} mapped, {c.get('scans_skipped', 0)} skipped "
-          f"(standing), {c.get('scans_in', 0)} received; frames {c.get('frames', 0)}")
+          f"(standing{f', {late} stamped out of order' if late else ''}), "
+          f"{c.get('scans_in', 0)} received; frames {c.get('frames', 0)}")
     ck = st["checkpoint"]
     print(f"checkpoint  {ck['saves']} saves to {ck['dir']} every {ck['interval_s']:g} s")
     print(f"{'device':10s} {'state':9s} {'rate':>7s} {'age':>7s} {'restarts':>8s} "

@@ -418,6 +418,16 @@ class MappingLoop:
         if self._before_odometry(scan):
             self.counts["scans_before_odometry"] += 1
             return
+        if self.pose_stamp_ns and scan.stamp_ns < self.pose_stamp_ns:
+            # a clock that went back (or a log whose stamps do): never mapped out of order,
+            # counted apart from the rate limit's skips, said at the 1st, 2nd, 4th, ... time
+            self.counts["scans_skipped"] += 1
+            self.counts["scans_out_of_order"] += 1
+            n = self.counts["scans_out_of_order"]
+            if n & (n - 1) == 0:
+                log.warning("scan stamped %.3f s before the last mapped one: skipped (%d so far)",
+                            (self.pose_stamp_ns - scan.stamp_ns) / 1e9, n)
+            return
         odom = self.odom_guess(scan.stamp_ns)
         if self._skip(scan, odom):
             self.counts["scans_skipped"] += 1
@@ -619,7 +629,9 @@ class MappingLoop:
             self.mapper.set_pose(self.pose)
         latest = self.odom.latest
         self.last_scan_odom = None if latest is None else latest[1].copy()
-        self.pose_stamp_ns = time.monotonic_ns() if latest is None else latest[0]
+        # no odometry yet: no stamp to compare the next scan with (this clock's time is not
+        # the scans' -- a replayed log's stamps are its own)
+        self.pose_stamp_ns = 0 if latest is None else latest[0]
         self.lost = False
         self._event("pose", {"pose": self.pose_list(), "reason": reason})
 

@@ -77,6 +77,22 @@ def test_standing_robot_does_not_grow_the_map():
     assert loop.counts["scans"] == 3 and loop.counts["scans_skipped"] == 27
 
 
+def test_a_scan_stamped_before_the_last_mapped_one_is_skipped_and_said(caplog):
+    # a log with stamps that go back (Intel has four): never mapped out of order, counted
+    loop = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0), devices={})
+    world = get_world("corridor")
+    stamps = [0, 100, 200, 150, 300, 120, 400]
+    for i, t in enumerate(stamps):
+        ns = t * 1_000_000
+        loop.handle("base", OdometryPose(stamp_ns=ns, x=0.01 * t, y=0.0, theta=0.0))
+        loop.handle("laser", scan_at(world, 0.01 * t / world.speed, i, ns + 1))
+        with caplog.at_level("WARNING"):
+            loop.process(odometry_live=False)
+    assert loop.counts["scans"] == 5 and loop.counts["scans_out_of_order"] == 2
+    said = [r.getMessage() for r in caplog.records if "before the last mapped" in r.getMessage()]
+    assert said and "0.050 s" in said[0] and "(1 so far)" in said[0]
+
+
 class FakeMapper:
     def __init__(self, quality):
         self.quality = quality
