@@ -140,7 +140,8 @@ class Column:
 
     A graph a daemon keeps for months has some 600 000 edges: as lists of small arrays they
     took ~420 bytes each (a Python object per measurement and per information matrix), as
-    columns 113, and handing them to a solve costs no conversion.  Rows read by index are
+    columns 113 plus the room to grow (at most as much again), and handing them to a solve
+    costs no conversion.  Rows read by index are
     views: like a list's elements they see assignments, but not after the buffer grows."""
 
     def __init__(self, shape: tuple = (), dtype=float, rows=None):
