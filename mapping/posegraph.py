@@ -109,10 +109,14 @@ class EdgeArrays:
                    np.broadcast_to(np.asarray(robust, bool), i.shape).copy())
 
     @classmethod
+    def empty(cls) -> EdgeArrays:
+        return cls.of([], [], [], [])
+
+    @classmethod
     def concat(cls, parts: list[EdgeArrays]) -> EdgeArrays:
         parts = [p for p in parts if len(p)]
         if not parts:
-            return cls.of([], [], [], [])
+            return cls.empty()
         return cls(*(np.concatenate([getattr(p, f) for p in parts])
                      for f in ("i", "j", "z", "info", "robust")))
 

@@ -636,7 +636,7 @@ def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
     found = []
     for c0 in range(0, len(pairs), NP.chunk):
         if stop is not None and stop():
-            return EdgeArrays.of([], [], [], [])
+            return EdgeArrays.empty()
         j, i = pairs[order[c0:c0 + NP.chunk]].T
         src_a, src_b = _pad([scans[k] for k in i], 0.0)
         dst_a, dst_b = _pad([scans[k] for k in j], 1e6)  # padding never matches
@@ -691,7 +691,7 @@ class FinishJob:
     sweep: LoopParams | None = None            # tracking closures first (None: not)
     travel: np.ndarray | None = None           # odometry distance per node, for the sweep
     # the sweep's and the last round's edges (i the earlier node of each)
-    edges: EdgeArrays = field(default_factory=lambda: EdgeArrays.of([], [], [], []))
+    edges: EdgeArrays = field(default_factory=lambda: EdgeArrays.empty())
     poses: np.ndarray | None = None            # the snapshot's nodes, re-optimised
     pairs: int = 0                             # scan pairs matched, all rounds
     sweep_edges: int = 0
@@ -710,7 +710,7 @@ class FinishJob:
         g = self.graph
         if self.nodes < 2:
             return self
-        swept = EdgeArrays.of([], [], [], [])
+        swept = EdgeArrays.empty()
         if self.sweep is not None:
             # before the rounds: each revisit tied to its earlier visit's submap; the
             # edges stay in the block with every round's
@@ -728,7 +728,7 @@ class FinishJob:
             self.pairs += len(pairs)
             got = neighbour_matches(X, self.scans, rp, pairs, stop)
             if stop is not None and stop():
-                self.edges, self.poses = EdgeArrays.of([], [], [], []), None
+                self.edges, self.poses = EdgeArrays.empty(), None
                 return self
             if not len(got):
                 continue
@@ -758,7 +758,7 @@ def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams
                       i - LP.min_separation)
     counts = np.array([len(a) for a, _ in scans])
     i, last = i[(last >= 0) & (counts[i] >= 2)], last[(last >= 0) & (counts[i] >= 2)]
-    none = EdgeArrays.of([], [], [], [])
+    none = EdgeArrays.empty()
     if not len(i):
         return none
     # the nearest earlier visit: among each scan's nearest few, the first old enough
