@@ -218,6 +218,10 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
     notify = None
     driver = None
     report: dict[str, Any] = {"world": world_name, "duration_s": duration}
+    # the twins run in sessions of their own (a terminal's Ctrl-C must reach only the demo,
+    # which stops them): a SIGTERM must unwind through the finally below as Ctrl-C does, or
+    # a killed demo leaves its twins running
+    previous = _exit_on_sigterm()
     try:
         need = {urlname[len("sim://"):] for urlname in
                 (d["url"] for d in base_cfg["devices"].values()) if urlname.startswith("sim://")}
@@ -356,6 +360,22 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
                 f.unlink()
         with contextlib.suppress(OSError):
             run_dir.rmdir()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _exit_on_sigterm():
+    """SIGTERM raises SystemExit(143) in the main thread; returns the handler it replaced
+    (None when not in the main thread, where handlers cannot be set)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    return signal.signal(signal.SIGTERM, stop)
 
 
 def process_cpu_s(pid: int) -> float | None:
