@@ -1,5 +1,5 @@
 """A demo stopped by SIGTERM (a CI timeout, `kill`) stops its twins and daemon as Ctrl-C does:
-they run in sessions of their own, so nothing else would."""
+the twins run in sessions of their own, so nothing else would."""
 
 from __future__ import annotations
 
@@ -40,17 +40,18 @@ def test_sigterm_stops_the_demos_twins(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     seen, kids = "", []
     try:
+        # until the first progress line: the twins and the daemon are all running
         deadline = time.monotonic() + 60
-        while "starting cgamapd" not in seen and time.monotonic() < deadline:
+        while "] pose" not in seen and time.monotonic() < deadline:
             ready, _, _ = select.select([demo.stdout], [], [], 0.5)
             if ready:
                 line = demo.stdout.readline()
                 if not line:
                     break
                 seen += line
-        assert "starting cgamapd" in seen, seen
+        assert "] pose" in seen, seen
         kids = _children(demo.pid)
-        assert len(kids) >= 2, (kids, seen)  # the laser and base twins at least
+        assert len(kids) >= 3, (kids, seen)  # the laser and base twins and cgamapd at least
         demo.send_signal(signal.SIGTERM)
         assert demo.wait(30) == 128 + signal.SIGTERM
         deadline = time.monotonic() + 15
