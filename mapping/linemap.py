@@ -99,20 +99,21 @@ class LineMap:
     def _appended(self, name: str, rows: np.ndarray) -> np.ndarray:
         """Contribution column ``name`` with ``rows`` after it.  The columns are prefixes of
         buffers with room to grow (every scan adds a few rows to tens of thousands, and a
-        copy each time made a long run's steps slower the longer it ran); a column replaced
-        meanwhile (a subset, a compaction) gets a new buffer.  Rows are only ever written
-        past a column's end, so views handed out earlier never change."""
+        copy each time made a long run's steps slower the longer it ran).  Rows are written
+        in place only when the column is the very view this returned last time; any other
+        column (a subset, a compaction, a copy of this map) gets a new buffer, so views
+        handed out earlier never change."""
         cur = getattr(self, name)
         bufs = self.__dict__.setdefault("_buffers", {})  # not a field: never saved
-        buf = bufs.get(name)
+        buf, last = bufs.get(name, (None, None))
         n, k = len(cur), len(rows)
-        if (buf is None or cur.base is not buf or len(buf) < n + k or cur.ctypes.data
-                != buf.ctypes.data or buf.dtype != cur.dtype):
+        if cur is not last or len(buf) < n + k:
             buf = np.empty((max(2 * (n + k), 256), *cur.shape[1:]), cur.dtype)
             buf[:n] = cur
-            bufs[name] = buf
         buf[n:n + k] = rows
-        return buf[:n + k]
+        view = buf[:n + k]
+        bufs[name] = (buf, view)
+        return view
 
     def append(self, seg: Segments, stamp: int) -> None:
         k = len(seg)

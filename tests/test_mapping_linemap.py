@@ -99,6 +99,15 @@ def test_contributions_grow_in_place_and_earlier_views_stay():
     assert list(zip(m.c_node.tolist(), m.c_seg.tolist(), strict=True)) == want
     assert np.array_equal(early, early_copy)
     assert len(m.c_a) == len(m.c_scat) == len(want) and m.c_n.dtype == float
+    # a shallow copy shares the buffers' bookkeeping: each still appends its own rows
+    import copy
+
+    other = copy.copy(m)
+    seg = _seg([[0.0, 9.0]], [[1.0, 9.0]])
+    m.add_contributions(np.array([0]), 100, seg)
+    other.add_contributions(np.array([1]), 200, seg)
+    assert m.c_node[-1] == 100 and other.c_node[-1] == 200
+    assert len(m.c_node) == len(other.c_node) == len(want) + 1
 
 
 def test_refresh_follows_new_poses():
