@@ -265,6 +265,15 @@ def planemap_from_simple(simple: list[dict]) -> dict:
 # -- the loop -------------------------------------------------------------------------------
 
 
+def configured_mount(devices: dict) -> tuple[float, float, float] | None:
+    """The laser device's mount (x, y, yaw) in the base frame, None without a laser."""
+    laser = next((d for d in devices.values() if d["role"] == "laser"), None)
+    if laser is None:
+        return None
+    mt = laser["mount"]
+    return (mt["x"], mt["y"], mt["yaw"])
+
+
 class MappingLoop:
     """Fuses device messages; ``status()``, ``map_json()``, ``state()`` for the service."""
 
@@ -281,11 +290,7 @@ class MappingLoop:
         self.scan_period_ns = int(1e9 / m["scan_max_rate"])
         devices = devices if devices is not None else cfg["devices"]
         self.roles = {name: d["role"] for name, d in devices.items()}
-        laser = next((d for d in devices.values() if d["role"] == "laser"), None)
-        mount = None
-        if laser is not None:
-            mt = laser["mount"]
-            mount = (mt["x"], mt["y"], mt["yaw"])
+        mount = configured_mount(devices)
         if laser_mount is not None:
             mount = tuple(float(v) for v in laser_mount)
         if mount is not None and not any(mount):

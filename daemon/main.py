@@ -106,15 +106,14 @@ def check_replay(path: str) -> None:
 
 
 def replay_mount(path: str) -> tuple[float, float, float] | None:
-    """The laser mount (x, y, yaw) a replayed CARMEN log states: its laser poses are its
-    odometry (robot) poses moved by one fixed offset (a ROBOTLASER1 log of a laser off the
-    robot's centre) -> that offset; the very same poses (an FLASER log) -> (0, 0, 0).  None
-    when the log states none (an MCAP recording, poses missing, or laser poses corrected
-    apart from the odometry): the configuration's mount stands."""
-    import numpy as np
+    """The laser mount (x, y, yaw) a replayed CARMEN log states (``stated_mount`` of its
+    scans' laser and odometry poses: a ROBOTLASER1 log of a laser off the robot's centre ->
+    that offset; an FLASER log -> zeros).  None when the log states none (an MCAP recording,
+    poses missing, or laser poses corrected apart from the odometry): the configuration's
+    mount stands."""
     from cgamap.daemon.recording import is_mcap, read_messages
     from cgamap.drivers.messages import LaserScan
-    from cgamap.mapping.odometry import laser_mount, relative
+    from cgamap.mapping.odometry import stated_mount
 
     if is_mcap(path):
         return None
@@ -123,22 +122,15 @@ def replay_mount(path: str) -> tuple[float, float, float] | None:
         if isinstance(msg, LaserScan) and msg.pose_ref is not None and msg.pose_odom is not None:
             ref.append(msg.pose_ref)
             odo.append(msg.pose_odom)
-    if not ref:
-        return None
-    odo_a, ref_a = np.array(odo, float), np.array(ref, float)
-    m = laser_mount(odo_a, ref_a)
-    if m is not None:
-        return (float(m[0]), float(m[1]), float(m[2]))
-    rel = relative(odo_a, ref_a)
-    same = np.abs(rel[:, :2]).max() <= 1e-4 and np.abs(rel[:, 2]).max() <= 1e-5
-    return (0.0, 0.0, 0.0) if same else None
+    m = stated_mount(odo, ref) if ref else None
+    return None if m is None else (float(m[0]), float(m[1]), float(m[2]))
 
 
 def mount_note(cfg: dict, mount: tuple[float, float, float]) -> str | None:
     """A line to log when a replayed log's laser mount differs from the configured one."""
-    laser = next((d for d in cfg["devices"].values() if d["role"] == "laser"), None)
-    mt = laser["mount"] if laser is not None else {"x": 0.0, "y": 0.0, "yaw": 0.0}
-    old = (mt["x"], mt["y"], mt["yaw"])
+    from cgamap.daemon.loop import configured_mount
+
+    old = configured_mount(cfg["devices"]) or (0.0, 0.0, 0.0)
     if max(abs(o - m) for o, m in zip(old, mount, strict=True)) <= 1e-3:
         return None
     return (f"replay: the log's laser poses put the laser at x {mount[0]:.3f} m, "

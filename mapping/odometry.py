@@ -160,12 +160,13 @@ def pose_increments(poses) -> np.ndarray:
     return relative(p[:-1], p[1:])
 
 
-def laser_mount(odometry, laser, tol_trans: float = 0.005, tol_rot: float = 0.002
-                ) -> np.ndarray | None:
-    """The laser's mount (x, y, theta in the robot frame) when a log's laser poses (n, 3)
-    are its odometry poses (n, 3) moved by one fixed offset, as CARMEN writes them for a
-    laser off the robot's centre; None when the two are the same, or are not one offset
-    apart (every pose within ``tol_trans`` m / ``tol_rot`` rad of the median offset)."""
+def stated_mount(odometry, laser, tol_trans: float = 0.005, tol_rot: float = 0.002
+                 ) -> np.ndarray | None:
+    """The laser's mount (x, y, theta in the robot frame) that a log's laser poses (n, 3)
+    and odometry poses (n, 3) state: the one fixed offset between them, as CARMEN writes a
+    laser off the robot's centre (zeros when they are the same poses); None when they are
+    not one offset apart (every pose within ``tol_trans`` m / ``tol_rot`` rad of the median
+    offset), e.g. laser poses corrected apart from the odometry."""
     o, p = np.asarray(odometry, float).reshape(-1, 3), np.asarray(laser, float).reshape(-1, 3)
     if not len(o) or o.shape != p.shape:
         return None
@@ -173,10 +174,19 @@ def laser_mount(odometry, laser, tol_trans: float = 0.005, tol_rot: float = 0.00
     m = np.median(rel, axis=0)
     off = rel - m
     off[:, 2] = wrap_angle(off[:, 2])
-    if (np.hypot(off[:, 0], off[:, 1]).max() > tol_trans or np.abs(off[:, 2]).max() > tol_rot
-            or (np.hypot(m[0], m[1]) <= 1e-4 and abs(m[2]) <= 1e-5)):
+    if np.hypot(off[:, 0], off[:, 1]).max() > tol_trans or np.abs(off[:, 2]).max() > tol_rot:
         return None
+    if np.hypot(m[0], m[1]) <= 1e-4 and abs(m[2]) <= 1e-5:
+        return np.zeros(3)
     return m
+
+
+def laser_mount(odometry, laser, tol_trans: float = 0.005, tol_rot: float = 0.002
+                ) -> np.ndarray | None:
+    """:func:`stated_mount` when the laser is off the robot's centre; None when the poses
+    are the same, or are not one offset apart."""
+    m = stated_mount(odometry, laser, tol_trans, tol_rot)
+    return None if m is None or not m.any() else m
 
 
 # The planar pose's motor is the core's closed form (one pose or a batch, microseconds).

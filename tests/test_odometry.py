@@ -183,6 +183,12 @@ def test_laser_mount_from_a_logs_poses():
     drifted[25:, 0] += 0.3                             # two trajectories, no one offset
     assert laser_mount(robot, drifted) is None
     assert laser_mount(robot[:3], laser) is None       # mismatched lengths
+    # what the log states, the centre included (a replay adopts it over the configuration)
+    from cgamap.mapping.odometry import stated_mount
+
+    assert np.allclose(stated_mount(robot, laser), mount)
+    assert np.array_equal(stated_mount(robot, robot), np.zeros(3))
+    assert stated_mount(robot, drifted) is None
 
 
 def test_log_odometry_carries_the_robots_odometry_to_the_laser():
