@@ -68,6 +68,13 @@ class LoopParams:
     max_turn: float = np.deg2rad(25.0)  # ... and turn it by at most this
     sigma: tuple[float, float] = (0.05, 0.01)  # loop edge std (m, rad)
     confirm: bool = True          # a relocalised closure is refined and must still fit
+    # ... and match the scan about as well as the current pose refined the same way: it is
+    # refused when that matches this share of the scan's length more (None: no check)
+    guess_margin: float | None = 0.05
+    # when the two match alike (within guess_margin), the submap cannot tell them apart: the
+    # jump is then refused beyond this (m) plus this share of the odometry travel since the
+    # earlier visit (the drift a scan-matched trajectory may have gathered meanwhile)
+    tie_jump: tuple[float, float] = (0.3, 0.03)
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
     cooldown: int = 3             # scans between optimisations ...
@@ -197,7 +204,7 @@ class Mapper:
         self._neighbour_block = (0, 0)
         self._weighted = 0
         self.loop_stats = {"tracked": 0, "tried": 0, "no_pose": 0, "low_score": 0,
-                           "unconfirmed": 0,
+                           "unconfirmed": 0, "guess_fits": 0,
                            "ambiguous": 0}
 
     @property
@@ -406,6 +413,10 @@ class Mapper:
                             moved[2]) > np.deg2rad(5.0):
                         self.loop_stats["unconfirmed"] += 1
                         continue
+                    if self._guess_rivals(seg, sub, guess, corr, LP,
+                                          float(self.travel[i] - self.travel[j])):
+                        self.loop_stats["guess_fits"] += 1
+                        continue
                     best = Hypothesis(corr.pose, best.score)
             else:
                 self.loop_stats["tracked"] += 1
@@ -445,6 +456,25 @@ class Mapper:
         R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
         return LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
                        np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
+
+    def _guess_rivals(self, seg: Segments, sub: LineMap, guess: np.ndarray, corr: Correction,
+                      LP: LoopParams, travel: float) -> bool:
+        """Whether the pose the mapper already has, refined against the submap as the
+        relocalised one was, is the better one: elsewhere, and matching more of the scan.  A small
+        submap (an earlier visit's few scans) may cover only part of what the scan sees; a
+        pose slid along its longest wall can then put more points on it than the true one,
+        and the point score alone would make a jump of metres out of odometry that was right."""
+        if LP.guess_margin is None:
+            return False
+        here = correct_pose(seg, sub.a, sub.b, guess, 1.0, self.params.correction)
+        apart = float(np.hypot(*relative(here.pose, corr.pose)[:2]))
+        if apart <= 0.3:
+            return False  # the same place
+        lead = corr.matched_fraction - here.matched_fraction
+        if lead < -LP.guess_margin:
+            return True
+        a, b = LP.tie_jump
+        return bool(lead <= LP.guess_margin and apart > a + b * travel)
 
     def _closure_by_tracking(self, seg: Segments, sub: LineMap, guess: np.ndarray):
         """The cheap way first: point-to-line correction from the current estimate with wide
