@@ -155,24 +155,28 @@ def fuse_groups(group: np.ndarray, m: int, n: np.ndarray, centroid: np.ndarray,
     return N, C, S, C + lo[:, None] * d, C + hi[:, None] * d, np.sqrt(ms)
 
 
-def _components(u: np.ndarray, v: np.ndarray, n: int) -> list[list[int]]:
-    """Connected components (of size >= 2) of n nodes joined by edges (u, v)."""
-    parent = list(range(n))
-
-    def find(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for i, j in zip(u.tolist(), v.tolist(), strict=True):
-        ri, rj = find(i), find(j)
-        if ri != rj:
-            parent[ri] = rj
-    comp: dict[int, list[int]] = {}
-    for x in sorted(set(u.tolist()) | set(v.tolist())):
-        comp.setdefault(find(x), []).append(x)
-    return list(comp.values())
+def _components(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Connected components of the graph of edges (u, v) (node numbers), as (member, group,
+    count): each component's nodes ascending, the components in the order of their smallest
+    node.  Labels by min-label propagation with pointer jumping: a few numpy passes where a
+    union-find in Python took ~0.1 ms per scan."""
+    if not len(u):
+        return np.zeros(0, int), np.zeros(0, int), 0
+    nodes, inv = np.unique(np.concatenate([u, v]), return_inverse=True)
+    eu, ev = inv[: len(u)], inv[len(u):]
+    lab = np.arange(len(nodes))
+    while True:
+        new = lab.copy()
+        np.minimum.at(new, eu, lab[ev])
+        np.minimum.at(new, ev, lab[eu])
+        new = new[new]  # a node's label is a node of its component: jump to that one's
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    order = np.argsort(lab, kind="stable")  # nodes are ascending: stable keeps them so
+    ls = lab[order]
+    group = np.cumsum(np.concatenate([[0], ls[1:] != ls[:-1]]))
+    return nodes[order], group, int(group[-1]) + 1
 
 
 def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
@@ -201,30 +205,28 @@ def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
     target = np.full(k, -1)
     remove: list[int] = []
     redirect_pairs: list[tuple[int, int]] = []
-    comps = _components(ii, jj + k, k + len(lmap))
-    if comps:
-        member = np.concatenate([np.asarray(c) for c in comps])
-        group = np.repeat(np.arange(len(comps)), [len(c) for c in comps])
+    member, group, n_comp = _components(ii, jj + k)
+    if n_comp:
         is_obs = member < k
         o, mi = member[is_obs], member[~is_obs] - k
         go, gm = group[is_obs], group[~is_obs]
         grp = np.concatenate([go, gm])
         N, C, Sm, pa, pb, rms = fuse_groups(
-            grp, len(comps), np.concatenate([seg_g.n[o].astype(float), lmap.n_pts[mi]]),
+            grp, n_comp, np.concatenate([seg_g.n[o].astype(float), lmap.n_pts[mi]]),
             np.concatenate([seg_g.centroid[o], lmap.centroid[mi]]),
             np.concatenate([seg_g.scatter[o], lmap.scatter[mi]]),
             np.concatenate([seg_g.a[o], lmap.a[mi]]), np.concatenate([seg_g.b[o], lmap.b[mi]]))
         # a fusion that is not one wall after all (two walls, or a pose still off) is
         # not made: those observations stay apart
         good = rms <= params.max_residual
-        j0 = np.full(len(comps), len(lmap))
+        j0 = np.full(n_comp, len(lmap))
         np.minimum.at(j0, gm, mi)  # each group's first map member keeps the fused segment
         g_ok = np.nonzero(good)[0]
         J = j0[g_ok]
         lmap.a[J], lmap.b[J], lmap.n_pts[J] = pa[g_ok], pb[g_ok], N[g_ok]
         lmap.centroid[J], lmap.scatter[J] = C[g_ok], Sm[g_ok]
-        n_obs = np.bincount(gm, lmap.n_obs[mi], len(comps))
-        first = np.full(len(comps), _IMAX)
+        n_obs = np.bincount(gm, lmap.n_obs[mi], n_comp)
+        first = np.full(n_comp, _IMAX)
         np.minimum.at(first, gm, lmap.created[mi])
         lmap.n_obs[J] = n_obs[g_ok].astype(int) + 1
         lmap.created[J] = first[g_ok]
@@ -300,19 +302,18 @@ def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = N
     ii = rec[ii]
     if not len(ii):
         return 0
-    comps = _components(ii, jj, m)
-    member = np.concatenate([np.asarray(c) for c in comps])
-    group = np.repeat(np.arange(len(comps)), [len(c) for c in comps])
-    N, C, S, pa, pb, rms = fuse_groups(group, len(comps), lmap.n_pts[member],
+    member, group, n_comp = _components(ii, jj)
+    N, C, S, pa, pb, rms = fuse_groups(group, n_comp, lmap.n_pts[member],
                                        lmap.centroid[member], lmap.scatter[member],
                                        lmap.a[member], lmap.b[member])
     good = rms <= params.max_residual
-    j0 = np.array([c[0] for c in comps])  # members are sorted: the first keeps the segment
+    # members are ascending: each group's first keeps the segment
+    j0 = member[np.flatnonzero(np.concatenate([[True], group[1:] != group[:-1]]))]
     g = np.nonzero(good)[0]
     J = j0[g]
-    n_obs = np.bincount(group, lmap.n_obs[member], len(comps)).astype(int)
-    first = np.full(len(comps), _IMAX)
-    last = np.full(len(comps), _IMIN)
+    n_obs = np.bincount(group, lmap.n_obs[member], n_comp).astype(int)
+    first = np.full(n_comp, _IMAX)
+    last = np.full(n_comp, _IMIN)
     np.minimum.at(first, group, lmap.created[member])
     np.maximum.at(last, group, lmap.last_seen[member])
     lmap.a[J], lmap.b[J], lmap.n_pts[J], lmap.centroid[J], lmap.scatter[J] = \
