@@ -177,3 +177,16 @@ def test_not_json_and_nan(tmp_path):
         load_map(p)
     with pytest.raises(MapFormatError, match="cannot read"):
         load_map(tmp_path / "missing.json")
+
+
+def test_components_of_a_small_graph():
+    from cgamap.mapping.linemap import _components
+
+    # a chain 9-4-7-2 given out of order (labels must travel 3 edges), a pair 5-8, and 3-3
+    u = np.array([7, 4, 5, 7, 3])
+    v = np.array([2, 9, 8, 4, 3])
+    member, group, n = _components(u, v)
+    assert n == 3
+    got = [member[group == g].tolist() for g in range(n)]
+    assert got == [[2, 4, 7, 9], [3], [5, 8]]  # ascending, ordered by smallest node
+    assert _components(np.zeros(0, int), np.zeros(0, int))[2] == 0
