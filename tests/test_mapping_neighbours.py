@@ -151,3 +151,27 @@ def test_finish_without_kept_scans_still_adjusts_the_lines():
     assert m.adjusted["lines"] > 0 and m.adjusted["iterations"] > 0
     assert m.sweep_edges == 0 and m.neighbour_edges == 0
     assert np.abs(m.poses - before).max() > 0
+
+
+def test_online_closures_count_closure_weight_once_after_the_pass():
+    """The finishing pass replaces what the online closures said with its own pairs: those
+    closures stay in the graph at ``closure_weight``, scaled once however often the pass
+    runs (the daemon runs it on demand)."""
+    w = get_world("loop")
+    t = np.arange(0, 2 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=2)
+    NP = NeighbourParams(closure_weight=0.25)
+    m = Mapper(MapperParams(neighbours=NP), initial_pose=odo[0])
+    for s, o in zip(scans, odo, strict=True):
+        m.step(s.ranges, s.angle_min, s.angle_increment, o)
+    g = m.graph
+    online = np.flatnonzero(g.loop.array())
+    assert len(online) >= 1, "the run closed no loop online"
+    info0 = g.info.array()[online].copy()
+    m.finish()
+    assert m.neighbour_edges > 0
+    np.testing.assert_allclose(g.info.array()[online], 0.25 * info0)
+    m.apply_finish(m.finishing_job().run())  # again, as the daemon's next optimize
+    np.testing.assert_allclose(g.info.array()[online], 0.25 * info0)
