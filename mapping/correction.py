@@ -13,7 +13,6 @@ the matched fraction of the scan are the match-quality figures.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,38 +126,20 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
                         seg_a + (0.5 + _G) * (seg_b - seg_a)], axis=1)
     wq = np.concatenate([L, L], axis=1) * 0.5
     rows = np.arange(n_pairs)[:, None]
-    # moved together, one product per pass: end points, Gauss points, midpoints
-    pts = np.concatenate([seg_a, seg_b, q, 0.5 * (seg_a + seg_b)], axis=1)
+    pts = np.concatenate([seg_a, seg_b, q], axis=1)  # moved together: one product per pass
     # (each pass below is a fixed number of numpy calls over all problems at once: with
     # one problem of a few dozen segments, the calls are the cost, not the arithmetic)
     if k and index.a.shape[-2]:
         var = params.sigma_point ** 2
         wq_var = wq / var
-        # the pass's match test (:func:`.matching.match_index`, eq. 15 spheres and the
-        # lines' angle and distance) on quantities a pass does not change: the lines'
-        # normals and offsets, the radii, the lengths (a rotation keeps them)
-        nT = np.swapaxes(index.n, -1, -2)
-        cN = index.c[..., None, :]
-        cx, cy = index.centre[..., None, :, 0], index.centre[..., None, :, 1]
-        half = index.half[..., None, :]
-        Lh = (0.5 * L)[..., None]
-        gauss_rows = np.arange(2 * k, 4 * k)[None, :]
-        invL = (1.0 / np.maximum(L, 1e-12))[..., None]
         # the Jacobian's columns and the residual as a fourth: H and g are one product
         Je = np.empty((n_pairs, 2 * k, 4))
         for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
             t = x[:, None, :2]
             moved = pts @ _rot_t(x[:, 2]) + t
-            # signed distances of all end and Gauss points from every line, one product
-            E = moved[:, :4 * k] @ nT - cN
-            ada, adb = np.abs(E[:, :k]), np.abs(E[:, k:2 * k])
-            sin_ang = np.abs(E[:, k:2 * k] - E[:, :k]) * invL
-            cm = moved[:, 4 * k:]
-            dx_, dy_ = cm[..., :, None, 0] - cx, cm[..., :, None, 1] - cy
-            rr = (Lh + gate) + (half + gate)
-            near = dx_ * dx_ + dy_ * dy_ <= rr * rr * (1.0 + 1e-12)
-            ok = near & (sin_ang < math.sin(math.radians(ag))) & (np.maximum(ada, adb) < gate)
-            best = np.argmin(np.where(ok, ada + adb + sin_ang, np.inf), axis=-1)
+            qg = moved[:, 2 * k:]
+            ok, cost = match_index(moved[:, :k], moved[:, k:2 * k], index, np.deg2rad(ag), gate)
+            best = np.argmin(cost, axis=-1)
             has = ok.any(axis=-1)
             matches = np.where(has, best, -1)
             r = x - pred
@@ -166,20 +147,19 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
             jm = np.concatenate([best, best], axis=1)
             use = np.concatenate([has, has], axis=1)
             n = index.n[rows, jm]
-            e = E[rows, gauss_rows, jm]
-            rel = moved[:, 2 * k:4 * k] - t
+            nx, ny = n[..., 0], n[..., 1]
+            e = nx * qg[..., 0] + ny * qg[..., 1] - index.c[rows, jm]
+            rel = qg - t
             Je[..., :2] = n
-            Je[..., 2] = n[..., 1] * rel[..., 0] - n[..., 0] * rel[..., 1]
+            Je[..., 2] = ny * rel[..., 0] - nx * rel[..., 1]
             Je[..., 3] = e
             scale = max(gate / 3.0, 0.03)
             if params.extrapolation > 0:
-                qg = moved[:, 2 * k:4 * k]
-                nx, ny = n[..., 0], n[..., 1]
-                half_m = index.half[rows, jm]
+                half = index.half[rows, jm]
                 off = qg - index.centre[rows, jm]
                 along = off[..., 0] * ny - off[..., 1] * nx
-                past = np.maximum(np.abs(along) - half_m, 0.0)
-                w = wq / (var + (past * params.extrapolation / np.maximum(2.0 * half_m, 1e-3))
+                past = np.maximum(np.abs(along) - half, 0.0)
+                w = wq / (var + (past * params.extrapolation / np.maximum(2.0 * half, 1e-3))
                           ** 2)
             else:
                 w = wq_var
