@@ -208,15 +208,22 @@ def test_replay_of_a_real_carmen_log(tmp_path, shared_data):
 
     part = head_of_log(shared_data("laser/intel-corrected.log.gz"), tmp_path / "intel-200.log",
                        200)
+    _, ck = _replay_to_the_end(part, tmp_path)
+    assert ck["reason"] == "shutdown" and ck["loop"]["counts"]["scans"] >= 150
+    assert len(ck["loop"]["map2d"]["map"]["a"]) >= 10
+
+
+def _replay_to_the_end(log, tmp_path) -> tuple[str, dict]:
+    """``cgamapd --replay LOG --exit-after-replay`` (no laser mount configured) run to its
+    end: the daemon's log text and its last checkpoint."""
     run = short_dir()
     try:
         r = DaemonProc({"checkpoint": {"interval": 30.0}}, tmp_path, run,
-                       extra=["--replay", str(part), "--exit-after-replay"])
+                       extra=["--replay", str(log), "--exit-after-replay"])
         assert r.proc.wait(120) == 0, r.log_text()
-        ck = r.checkpoint()
+        text, ck = r.log_text(), r.checkpoint()
         r.stop()
-        assert ck["reason"] == "shutdown" and ck["loop"]["counts"]["scans"] >= 150
-        assert len(ck["loop"]["map2d"]["map"]["a"]) >= 10
+        return text, ck
     finally:
         shutil.rmtree(run, ignore_errors=True)
 
@@ -262,16 +269,7 @@ def test_replay_of_a_log_with_the_laser_off_the_centre(tmp_path):
     mount = (0.25, -0.05, 0.03)
     log = tmp_path / "mounted.clf"
     robot, _ = _mounted_log(log, mount, 0.6)
-    run = short_dir()
-    try:
-        r = DaemonProc({"checkpoint": {"interval": 30.0}}, tmp_path, run,
-                       extra=["--replay", str(log), "--exit-after-replay"])
-        assert r.proc.wait(120) == 0, r.log_text()
-        text = r.log_text()
-        ck = r.checkpoint()
-        r.stop()
-    finally:
-        shutil.rmtree(run, ignore_errors=True)
+    text, ck = _replay_to_the_end(log, tmp_path)
     assert "put the laser at x 0.250 m, y -0.050 m, yaw 1.72 deg" in text, text
     # the map against the world's walls, its frame starting at the robot's first pose
     # (measured: median 1 cm; with the laser taken for the robot, 15 cm)
