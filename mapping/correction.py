@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .matching import LineIndex, line_normals, match_index
+from .jit import kernel
+from .matching import LineIndex, line_normals, match_index, pair_cost
 from .segments import Segments
 
 _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate quadratics exactly
@@ -65,21 +66,6 @@ def _rot_t(theta) -> np.ndarray:
     return out
 
 
-def _solve3(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """x with H x = g for (P, 3, 3) H (symmetric positive definite) and (P, 3) g.  One
-    problem (a scan's correction) is solved by the adjugate in plain floats: numpy's calls
-    on 3-element arrays cost more than the rest of a small problem's Gauss-Newton pass."""
-    if len(H) != 1:
-        return np.linalg.solve(H, g[..., None])[..., 0]
-    (a, b, c), (_, d, e), (_, _, f) = H[0].tolist()
-    g0, g1, g2 = g[0].tolist()
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A + b * B + c * C
-    return np.array([[(A * g0 + B * g1 + C * g2) / det, (B * g0 + D * g1 + E * g2) / det,
-                      (C * g0 + E * g1 + F * g2) / det]])
-
-
 def _transform(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return p @ _rot_t(pose[2]) + pose[:2]
 
@@ -104,79 +90,144 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
     (P, 3) after steps of ``step`` metres (scalar or (P,)).
 
     Pad with zero-length scan segments (they weigh nothing) and with map segments far
-    away (they never match).  The Gauss-Newton passes of :func:`correct_pose` run for
-    every problem together; they stop early only when all have converged."""
+    away (they never match).  Each problem runs the Gauss-Newton passes of
+    :func:`correct_pose` and stops on its own once converged."""
     params = params or CorrectionParams()
-    pred = np.asarray(predicted, dtype=float)
-    x = pred.copy()
-    n_pairs, k = seg_a.shape[:2]
-    L = np.linalg.norm(seg_b - seg_a, axis=-1)
+    pred = np.ascontiguousarray(predicted, dtype=float)
+    n_pairs = len(pred)
     step = np.full(n_pairs, step, dtype=float) if np.isscalar(step) else np.asarray(step, float)
     st = params.prior_trans + params.prior_trans_per_m * step
     sr = params.prior_rot + params.prior_rot_per_m * step
-    w_prior = np.stack([st ** -2, st ** -2, sr ** -2], -1)
-    H0 = np.zeros((n_pairs, 3, 3))
-    H0[:, [0, 1, 2], [0, 1, 2]] = w_prior
-    H = H0
-    matches = np.full((n_pairs, k), -1)
-    use = np.zeros((n_pairs, 2 * k), bool)
-    e = np.zeros((n_pairs, 2 * k))
-    # the two Gauss points of every segment, laser frame
-    q = np.concatenate([seg_a + (0.5 - _G) * (seg_b - seg_a),
-                        seg_a + (0.5 + _G) * (seg_b - seg_a)], axis=1)
-    wq = np.concatenate([L, L], axis=1) * 0.5
-    rows = np.arange(n_pairs)[:, None]
-    pts = np.concatenate([seg_a, seg_b, q], axis=1)  # moved together: one product per pass
-    # (each pass below is a fixed number of numpy calls over all problems at once: with
-    # one problem of a few dozen segments, the calls are the cost, not the arithmetic)
-    if k and index.a.shape[-2]:
-        var = params.sigma_point ** 2
-        wq_var = wq / var
-        # the Jacobian's columns and the residual as a fourth: H and g are one product
-        Je = np.empty((n_pairs, 2 * k, 4))
-        for gate, ag in zip(params.gates, params.angle_gates_deg, strict=True):
-            t = x[:, None, :2]
-            moved = pts @ _rot_t(x[:, 2]) + t
-            qg = moved[:, 2 * k:]
-            ok, cost = match_index(moved[:, :k], moved[:, k:2 * k], index, np.deg2rad(ag), gate)
-            best = np.argmin(cost, axis=-1)
-            has = ok.any(axis=-1)
-            matches = np.where(has, best, -1)
-            r = x - pred
-            r[:, 2] = (r[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # eq. (9)
-            jm = np.concatenate([best, best], axis=1)
-            use = np.concatenate([has, has], axis=1)
-            n = index.n[rows, jm]
-            nx, ny = n[..., 0], n[..., 1]
-            e = nx * qg[..., 0] + ny * qg[..., 1] - index.c[rows, jm]
-            rel = qg - t
-            Je[..., :2] = n
-            Je[..., 2] = ny * rel[..., 0] - nx * rel[..., 1]
-            Je[..., 3] = e
+    w_prior = np.ascontiguousarray(np.stack([st ** -2, st ** -2, sr ** -2], -1))
+    f = np.ascontiguousarray
+    x, H, info, matches, rms, matched = _gauss_newton(
+        f(seg_a, dtype=float), f(seg_b, dtype=float), f(index.centre, dtype=float),
+        f(index.half, dtype=float), f(index.n, dtype=float), f(index.c, dtype=float), pred,
+        w_prior, np.array(params.gates, dtype=float),
+        np.sin(np.deg2rad(np.array(params.angle_gates_deg, dtype=float))),
+        params.sigma_point ** 2, params.converged_gate, params.extrapolation)
+    total = np.linalg.norm(seg_b - seg_a, axis=-1).sum(axis=1)
+    return BatchCorrection(x, _inverse3(H), matched / np.maximum(total, 1e-12), rms, matches,
+                           info)
+
+
+def _inverse3(H: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric (P, 3, 3) matrices (a lone 3x3 costs numpy's inv more in the
+    call than in the arithmetic)."""
+    out = np.empty_like(H)
+    _inverse3_into(H, out)
+    return out
+
+
+@kernel
+def _inverse3_into(H, out):
+    for p in range(H.shape[0]):
+        a, b, c = H[p, 0, 0], H[p, 0, 1], H[p, 0, 2]
+        d, e, f = H[p, 1, 1], H[p, 1, 2], H[p, 2, 2]
+        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+        D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+        det = a * A + b * B + c * C
+        out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
+        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, D / det, E / det
+        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, E / det, F / det
+
+
+@kernel
+def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, var,
+                  converged_gate, extrapolation):
+    """The robust Gauss-Newton passes of :func:`correct_batch`, problem by problem.
+
+    Each pass moves the scan segments by the current pose, matches each to its cheapest
+    map candidate under the pass's gates (:func:`.matching.pair_cost`), and adds the
+    squared point-to-line distance at the segment's two Gauss points (Cauchy-weighted at
+    a third of the gate, at least 3 cm; with ``extrapolation``, a point past the map
+    segment's end weighs less as the extrapolated line's direction is less sure),
+    linearised in (x, y, theta), to the odometry prior (eq. 9 wraps theta)."""
+    P, k, m = sa.shape[0], sa.shape[1], centre.shape[1]
+    x_out = pred.copy()
+    H_out = np.zeros((P, 3, 3))
+    info_out = np.zeros((P, 3, 3))
+    matches = np.full((P, k), -1, np.int64)
+    rms = np.zeros(P)
+    matched = np.zeros(P)
+    two_pi = 2.0 * np.pi
+    tg = (0.5 - _G, 0.5 + _G)
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    Hi = np.zeros((1, 3, 3))
+    for p in range(P):
+        x0, x1, x2 = pred[p, 0], pred[p, 1], pred[p, 2]
+        for it in range(len(gates)):
+            gate = gates[it]
             scale = max(gate / 3.0, 0.03)
-            if params.extrapolation > 0:
-                half = index.half[rows, jm]
-                off = qg - index.centre[rows, jm]
-                along = off[..., 0] * ny - off[..., 1] * nx
-                past = np.maximum(np.abs(along) - half, 0.0)
-                w = wq / (var + (past * params.extrapolation / np.maximum(2.0 * half, 1e-3))
-                          ** 2)
-            else:
-                w = wq_var
-            w = w * use / (1.0 + (e / scale) ** 2)
-            Hg = np.swapaxes(Je[..., :3] * w[..., None], -1, -2) @ Je
-            H = H0 + Hg[..., :3]
-            dx = -_solve3(H, w_prior * r + Hg[..., 3])
-            x = x + dx
-            x[:, 2] = (x[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
-            if gate <= params.converged_gate and np.abs(dx).max() < 5e-4:
+            co, si = np.cos(x2), np.sin(x2)
+            H[:] = 0.0
+            g[:] = 0.0
+            num = den = mlen = 0.0
+            for i in range(k):
+                ax = co * sa[p, i, 0] - si * sa[p, i, 1] + x0
+                ay = si * sa[p, i, 0] + co * sa[p, i, 1] + x1
+                bx = co * sb[p, i, 0] - si * sb[p, i, 1] + x0
+                by = si * sb[p, i, 0] + co * sb[p, i, 1] + x1
+                length = np.sqrt((bx - ax) ** 2 + (by - ay) ** 2)
+                best, cost = -1, np.inf
+                for j in range(m):
+                    cj = pair_cost(ax, ay, bx, by, length, centre[p, j, 0], centre[p, j, 1],
+                                   half[p, j], n[p, j, 0], n[p, j, 1], c[p, j], sin_gates[it],
+                                   gate, gate)
+                    if cj < cost:
+                        best, cost = j, cj
+                matches[p, i] = best
+                if best < 0:
+                    continue
+                mlen += length
+                nx, ny, cl = n[p, best, 0], n[p, best, 1], c[p, best]
+                wq = 0.5 * length
+                for t in tg:
+                    qx, qy = ax + t * (bx - ax), ay + t * (by - ay)
+                    e = nx * qx + ny * qy - cl
+                    j2 = ny * (qx - x0) - nx * (qy - x1)
+                    if extrapolation > 0.0:
+                        hl = half[p, best]
+                        along = (qx - centre[p, best, 0]) * ny - (qy - centre[p, best, 1]) * nx
+                        past = max(abs(along) - hl, 0.0)
+                        w = wq / (var + (past * extrapolation / max(2.0 * hl, 1e-3)) ** 2)
+                    else:
+                        w = wq / var
+                    w /= 1.0 + (e / scale) ** 2
+                    H[0, 0] += w * nx * nx
+                    H[0, 1] += w * nx * ny
+                    H[0, 2] += w * nx * j2
+                    H[1, 1] += w * ny * ny
+                    H[1, 2] += w * ny * j2
+                    H[2, 2] += w * j2 * j2
+                    g[0] += w * nx * e
+                    g[1] += w * ny * e
+                    g[2] += w * j2 * e
+                    num += wq * e * e
+                    den += wq
+            H[1, 0], H[2, 0], H[2, 1] = H[0, 1], H[0, 2], H[1, 2]
+            r2 = (x2 - pred[p, 2] + np.pi) % two_pi - np.pi
+            g0 = g[0] + w_prior[p, 0] * (x0 - pred[p, 0])
+            g1 = g[1] + w_prior[p, 1] * (x1 - pred[p, 1])
+            g2 = g[2] + w_prior[p, 2] * r2
+            for d in range(3):
+                info_out[p, d] = H[d]
+                Hi[0, d] = H[d]
+                Hi[0, d, d] += w_prior[p, d]
+                H_out[p, d] = Hi[0, d]
+            _inverse3_into(Hi, Hi)
+            d0 = Hi[0, 0, 0] * g0 + Hi[0, 0, 1] * g1 + Hi[0, 0, 2] * g2
+            d1 = Hi[0, 1, 0] * g0 + Hi[0, 1, 1] * g1 + Hi[0, 1, 2] * g2
+            d2 = Hi[0, 2, 0] * g0 + Hi[0, 2, 1] * g1 + Hi[0, 2, 2] * g2
+            x0, x1 = x0 - d0, x1 - d1
+            x2 = (x2 - d2 + np.pi) % two_pi - np.pi
+            rms[p] = np.sqrt(num / max(den, 1e-12))
+            matched[p] = mlen
+            if gate <= converged_gate and max(abs(d0), abs(d1), abs(d2)) < 5e-4:
                 break  # converged and the gates are already tight
-    total = L.sum(axis=1)
-    matched = np.sum(L * (matches >= 0), axis=1)
-    wu = np.where(use, wq, 0.0)
-    rms = np.sqrt(np.sum(wu * e ** 2, axis=1) / np.maximum(np.sum(wu, axis=1), 1e-12))
-    return BatchCorrection(x, np.linalg.inv(H), matched / np.maximum(total, 1e-12), rms,
-                           matches, H - H0)
+        x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
+    return x_out, H_out, info_out, matches, rms, matched
 
 
 def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicted,

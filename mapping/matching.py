@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .jit import kernel
+
 _METRIC = np.array([1.0, 1.0, 1.0, 1.0, -1.0])  # e1, e2, e3, e+, e-
 
 
@@ -100,32 +102,63 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     (..., k1, k2), each batch element matched only against its own segment set."""
     margin = max_dist if margin is None else margin
     k1, k2 = a1.shape[-2], idx.a.shape[-2]
+    batch = np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2])
     if k1 == 0 or k2 == 0:
-        shape = np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2]) + (k1, k2)
-        return np.zeros(shape, bool), np.zeros(shape)
-    d1 = b1 - a1
-    L1 = np.hypot(d1[..., 0], d1[..., 1])
-    # eq. (15) through the inner products of the normalised IPNS sphere vectors
-    # s_i = up(c_i) - r_i^2/2 einf: s_i . s_i = r_i^2 and s1 . s2 = (r1^2 + r2^2 - d^2) / 2
-    # (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 <= 0 exactly when
-    # (r1 - r2)^2 <= d^2 <= (r1 + r2)^2; with containment (d <= |r1 - r2|) accepted too,
-    # the candidates are d <= r1 + r2 (sphere_relation is the coefficient form, pinned
-    # against cga.spheres_intersect and this by tests).  One comparison per pair: this
-    # runs for every gate of every scan's correction, so every step below is one numpy
-    # call over the (k1, k2) pairs, as few as the test allows
-    c1 = 0.5 * (a1 + b1)
-    ctr = idx.centre
-    dx = c1[..., :, None, 0] - ctr[..., None, :, 0]
-    dy = c1[..., :, None, 1] - ctr[..., None, :, 1]
-    rr = (0.5 * L1 + margin)[..., :, None] + (idx.half + margin)[..., None, :]
-    near = dx * dx + dy * dy <= rr * rr * (1.0 + 1e-12)
-    # signed distances of both end points from every line, one product: ea = a1 . n2 - c2.
-    # Their difference over the length is d1 . n2, the |sin| of the undirected angle
-    # between the lines (n2 is d2 turned by 90 deg)
-    E = np.concatenate([a1, b1], axis=-2) @ np.swapaxes(idx.n, -1, -2) - idx.c[..., None, :]
-    ea, eb = E[..., :k1, :], E[..., k1:, :]
-    sin_ang = np.abs(eb - ea) / np.maximum(L1, 1e-12)[..., None]
-    ada, adb = np.abs(ea), np.abs(eb)
-    ok = near & (sin_ang < math.sin(max_angle)) & (np.maximum(ada, adb) < max_dist)
-    cost = 0.5 * (ada + adb + sin_ang)
-    return ok, np.where(ok, cost, np.inf)
+        return np.zeros(batch + (k1, k2), bool), np.zeros(batch + (k1, k2))
+
+    def flat(v, tail):  # (..., *tail) -> (B, *tail), contiguous float64
+        v = np.broadcast_to(np.asarray(v, dtype=float), batch + tail)
+        return np.ascontiguousarray(v.reshape((-1,) + tail))
+
+    cost = _match_costs(flat(a1, (k1, 2)), flat(b1, (k1, 2)), flat(idx.centre, (k2, 2)),
+                        flat(idx.half, (k2,)), flat(idx.n, (k2, 2)), flat(idx.c, (k2,)),
+                        math.sin(max_angle), float(max_dist), float(margin))
+    cost = cost.reshape(batch + (k1, k2))
+    return np.isfinite(cost), cost
+
+
+@kernel
+def pair_cost(ax: float, ay: float, bx: float, by: float, length: float, cx: float,
+              cy: float, half: float, nx: float, ny: float, c: float, sin_max: float,
+              max_dist: float, margin: float) -> float:
+    """The match test of observed segment a-b (``length`` long) against map segment
+    (centre c, half length ``half``, line n . x = c): its cost (mean |end point distance|
+    plus the |sin| of the angle between the lines, halved), inf when it is no candidate.
+
+    Eq. (15) through the inner products of the normalised IPNS sphere vectors
+    s_i = up(c_i) - r_i^2/2 einf: s_i . s_i = r_i^2 and s1 . s2 = (r1^2 + r2^2 - d^2) / 2
+    (d the centre distance), so (s1 ^ s2)^2 = (s1 . s2)^2 - r1^2 r2^2 <= 0 exactly when
+    (r1 - r2)^2 <= d^2 <= (r1 + r2)^2; with containment (d <= |r1 - r2|) accepted too, the
+    candidates are d <= r1 + r2, both radii enlarged by ``margin`` (:func:`sphere_relation`
+    is the coefficient form, pinned against ``cga.spheres_intersect`` and this by tests).
+    The end points' signed distances from the line differ by length * |sin| of the
+    undirected angle between the lines (n is the map direction turned by 90 deg)."""
+    dx = 0.5 * (ax + bx) - cx
+    dy = 0.5 * (ay + by) - cy
+    rr = 0.5 * length + half + 2.0 * margin
+    if not dx * dx + dy * dy <= rr * rr * (1.0 + 1e-12):  # (written so that nan fails)
+        return np.inf
+    ea = abs(ax * nx + ay * ny - c)
+    eb_signed = bx * nx + by * ny - c
+    eb = abs(eb_signed)
+    sin_ang = abs(eb_signed - (ax * nx + ay * ny - c)) / max(length, 1e-12)
+    if not (sin_ang < sin_max and max(ea, eb) < max_dist):
+        return np.inf
+    return 0.5 * (ea + eb + sin_ang)
+
+
+@kernel
+def _match_costs(a1, b1, centre, half, n, c, sin_max, max_dist, margin):
+    """(B, k1, k2) :func:`pair_cost` of every observed segment against every map segment
+    of its batch element."""
+    nb, k1, k2 = a1.shape[0], a1.shape[1], centre.shape[1]
+    out = np.empty((nb, k1, k2))
+    for q in range(nb):
+        for i in range(k1):
+            ax, ay, bx, by = a1[q, i, 0], a1[q, i, 1], b1[q, i, 0], b1[q, i, 1]
+            length = math.sqrt((bx - ax) ** 2 + (by - ay) ** 2)
+            for j in range(k2):
+                out[q, i, j] = pair_cost(ax, ay, bx, by, length, centre[q, j, 0],
+                                         centre[q, j, 1], half[q, j], n[q, j, 0], n[q, j, 1],
+                                         c[q, j], sin_max, max_dist, margin)
+    return out
