@@ -28,3 +28,31 @@ def kernel(fn):
         warnings.warn(f"numba cannot cache {fn.__qualname__} ({exc}); compiling in memory",
                       RuntimeWarning, stacklevel=2)
         return numba.njit(cache=False, nogil=True)(fn)
+
+
+def warm_up() -> float:
+    """Compile every kernel for the argument types the mapper passes (or load them from the
+    cache), on a tiny made-up scan; returns the seconds it took.  Without a cache that is
+    about 10 s on the 2-core machine: the daemon does it before it reports ready, not on
+    its first scan."""
+    import time
+
+    import numpy as np
+
+    from .correction import correct_pose
+    from .linemap import LineMap, dedupe, integrate
+    from .segments import extract_segments, tls_from_moments
+
+    t0 = time.perf_counter()
+    beams = np.linspace(-np.pi / 2, np.pi / 2, 61)
+    # a corner 2 m ahead and 1.5 m to the left: two walls, split, merged, fused
+    ranges = np.minimum(2.0 / np.maximum(np.cos(beams), 1e-9),
+                        1.5 / np.maximum(np.sin(beams), 1e-9))
+    seg = extract_segments(ranges, float(beams[0]), float(beams[1] - beams[0]))
+    lmap = LineMap()
+    integrate(lmap, seg, 0, seg_l=seg, node=0)
+    integrate(lmap, seg, 1, seg_l=seg, node=1)
+    dedupe(lmap)
+    correct_pose(seg, lmap.a, lmap.b, np.array([0.02, -0.01, 0.01]), 0.1)
+    tls_from_moments(seg.n, seg.centroid, seg.scatter)
+    return time.perf_counter() - t0

@@ -15,8 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .jit import kernel
 from .matching import match_candidates
-from .segments import Segments, tls_from_moments
+from .segments import Segments, tls_fit
 
 
 @dataclass(frozen=True)
@@ -135,48 +136,114 @@ def fuse_groups(group: np.ndarray, m: int, n: np.ndarray, centroid: np.ndarray,
     """:func:`fuse` for many groups at once: members with ``group`` label g in [0, m) form
     segment g.  Returns per group (count N, centroid C, scatter S, end points pa, pb, RMS
     orthogonal residual); groups without members get N = 0 (and meaningless geometry)."""
-    N = np.bincount(group, n, minlength=m)
-    Nn = np.where(N > 0, N, 1.0)
-    C = np.stack([np.bincount(group, n * centroid[:, 0], m),
-                  np.bincount(group, n * centroid[:, 1], m)], -1) / Nn[:, None]
-    dc = centroid - C[group]
-    Sk = scatter + n[:, None, None] * (dc[:, :, None] * dc[:, None, :])
-    S = np.stack([np.bincount(group, Sk[:, i, j], m) for i, j in ((0, 0), (0, 1), (1, 1))], -1)
-    S = S[:, [[0, 1], [1, 2]]]
-    d, ms, _ = tls_from_moments(Nn, C, S)
-    ta = np.einsum("ki,ki->k", a - C[group], d[group])
-    tb = np.einsum("ki,ki->k", b - C[group], d[group])
+    f = np.ascontiguousarray
+    return _fuse_groups(f(group, dtype=np.int64), int(m), f(n, dtype=float),
+                        f(centroid, dtype=float), f(scatter, dtype=float), f(a, dtype=float),
+                        f(b, dtype=float))
+
+
+@kernel
+def _fuse_groups(group, m, n, centroid, scatter, a, b):
+    """Moments add per group (counts, weighted centroids, scatter by the parallel-axis
+    rule), each group's line is their total-least-squares fit and its extent the union of
+    its members' end points projected on it."""
+    N = np.zeros(m)
+    C = np.zeros((m, 2))
+    S = np.zeros((m, 2, 2))
+    for k in range(len(group)):
+        g = group[k]
+        N[g] += n[k]
+        C[g, 0] += n[k] * centroid[k, 0]
+        C[g, 1] += n[k] * centroid[k, 1]
+    for g in range(m):
+        nn = N[g] if N[g] > 0 else 1.0
+        C[g, 0] /= nn
+        C[g, 1] /= nn
+    for k in range(len(group)):
+        g = group[k]
+        dx, dy = centroid[k, 0] - C[g, 0], centroid[k, 1] - C[g, 1]
+        S[g, 0, 0] += scatter[k, 0, 0] + n[k] * dx * dx
+        S[g, 0, 1] += scatter[k, 0, 1] + n[k] * dx * dy
+        S[g, 1, 1] += scatter[k, 1, 1] + n[k] * dy * dy
+    d = np.empty((m, 2))
+    rms = np.empty(m)
+    for g in range(m):
+        S[g, 1, 0] = S[g, 0, 1]
+        ms, _, d[g, 0], d[g, 1] = tls_fit(N[g] if N[g] > 0 else 1.0, S[g, 0, 0], S[g, 0, 1],
+                                       S[g, 1, 1])
+        rms[g] = np.sqrt(ms)
     lo = np.full(m, np.inf)
     hi = np.full(m, -np.inf)
-    np.minimum.at(lo, group, np.minimum(ta, tb))
-    np.maximum.at(hi, group, np.maximum(ta, tb))
-    empty = N == 0
-    lo[empty] = hi[empty] = 0.0
-    return N, C, S, C + lo[:, None] * d, C + hi[:, None] * d, np.sqrt(ms)
+    for k in range(len(group)):
+        g = group[k]
+        ta = (a[k, 0] - C[g, 0]) * d[g, 0] + (a[k, 1] - C[g, 1]) * d[g, 1]
+        tb = (b[k, 0] - C[g, 0]) * d[g, 0] + (b[k, 1] - C[g, 1]) * d[g, 1]
+        lo[g] = min(lo[g], ta, tb)
+        hi[g] = max(hi[g], ta, tb)
+    pa = np.empty((m, 2))
+    pb = np.empty((m, 2))
+    for g in range(m):
+        if N[g] == 0:
+            lo[g] = hi[g] = 0.0
+        for i in range(2):
+            pa[g, i] = C[g, i] + lo[g] * d[g, i]
+            pb[g, i] = C[g, i] + hi[g] * d[g, i]
+    return N, C, S, pa, pb, rms
 
 
 def _components(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Connected components of the graph of edges (u, v) (node numbers), as (member, group,
     count): each component's nodes ascending, the components in the order of their smallest
-    node.  Labels by min-label propagation with pointer jumping: a few numpy passes where a
-    union-find in Python took ~0.1 ms per scan."""
+    node."""
     if not len(u):
         return np.zeros(0, int), np.zeros(0, int), 0
     nodes, inv = np.unique(np.concatenate([u, v]), return_inverse=True)
-    eu, ev = inv[: len(u)], inv[len(u):]
-    lab = np.arange(len(nodes))
-    while True:
-        new = lab.copy()
-        np.minimum.at(new, eu, lab[ev])
-        np.minimum.at(new, ev, lab[eu])
-        new = new[new]  # a node's label is a node of its component: jump to that one's
-        if np.array_equal(new, lab):
-            break
-        lab = new
-    order = np.argsort(lab, kind="stable")  # nodes are ascending: stable keeps them so
-    ls = lab[order]
-    group = np.cumsum(np.concatenate([[0], ls[1:] != ls[:-1]]))
-    return nodes[order], group, int(group[-1]) + 1
+    order, group, count = _component_order(len(nodes), inv[: len(u)], inv[len(u):])
+    return nodes[order], group, count
+
+
+@kernel
+def _component_order(nn, eu, ev):
+    """Union-find over nodes 0..nn-1 joined by edges (eu, ev), each root the smallest node
+    of its set; returns the nodes grouped by component (ascending within, components by
+    their smallest node), their component numbers and the count."""
+    parent = np.arange(nn)
+    for q in range(len(eu)):
+        ra, rb = _root(parent, eu[q]), _root(parent, ev[q])
+        if ra < rb:
+            parent[rb] = ra
+        elif rb < ra:
+            parent[ra] = rb
+    first = np.full(nn, -1)  # component number, set at each component's smallest node
+    size = np.zeros(nn, np.int64)
+    count = 0
+    lab = np.empty(nn, np.int64)
+    for i in range(nn):
+        r = _root(parent, i)
+        if r == i:
+            first[i] = count
+            count += 1
+        lab[i] = first[r]
+        size[lab[i]] += 1
+    start = np.zeros(count + 1, np.int64)
+    for c in range(count):
+        start[c + 1] = start[c] + size[c]
+    order = np.empty(nn, np.int64)
+    group = np.empty(nn, np.int64)
+    for i in range(nn):  # ascending, so each component's nodes stay ascending
+        c = lab[i]
+        order[start[c]] = i
+        group[start[c]] = c
+        start[c] += 1
+    return order, group, count
+
+
+@kernel
+def _root(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]  # path halving; a root is never re-parented here
+        i = parent[i]
+    return i
 
 
 def integrate(lmap: LineMap, seg_g: Segments, stamp: int,

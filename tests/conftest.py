@@ -49,6 +49,16 @@ def require_data(relpath: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _mapper_kernels():
+    """The mapper's compiled kernels, built (or loaded from numba's cache) once before any
+    test: uncached that takes ~10 s, which must not land inside one test's timeout.  A
+    daemon a test starts then loads them from the cache, as the service does."""
+    from cgamap.mapping.jit import warm_up
+
+    warm_up()
+
+
 @pytest.fixture
 def shared_data():
     return require_data
