@@ -45,6 +45,11 @@ def test_unit_has_the_required_settings():
     assert {"char-ttyUSB rw", "char-ttyACM rw", "char-usb_device rw"} <= set(s["DeviceAllow"])
     assert "PrivateDevices" not in s  # it would hide the serial and USB nodes
     assert s["RestartPreventExitStatus"] == ["78"]
+    # the mapper's compiled kernels: cached where the service may write (the package is
+    # read-only under ProtectSystem=strict), and JIT code needs writable-executable pages
+    assert s["CacheDirectory"] == ["cgamap"]
+    assert "NUMBA_CACHE_DIR=/var/cache/cgamap/numba" in s["Environment"]
+    assert "MemoryDenyWriteExecute" not in s
 
 
 def test_udev_rule_sets_ftdi_latency():
