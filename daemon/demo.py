@@ -106,6 +106,9 @@ class Driver(threading.Thread):
         self.stop_event = threading.Event()
         self.commands = 0
         self.error: str | None = None
+        # the twins' clock (ms) when the wheels were told to stop: the twin's robot goes on
+        # along the path, so later scans and the stopped odometry disagree
+        self.stopped_ms: float | None = None
 
     def run(self) -> None:
         from cgamap.drivers.modbus_base import ModbusBase, ModbusBaseConfig
@@ -119,6 +122,7 @@ class Driver(threading.Thread):
                 wl, wr = path_speeds(self.world, t, r, b)
                 base.set_wheel_speeds(wl, wr)
                 self.commands += 1
+            self.stopped_ms = (time.monotonic_ns() - self.epoch_ns) / 1e6
             base.set_wheel_speeds(0.0, 0.0)
         except Exception as exc:  # noqa: BLE001 - reported in the demo's output
             self.error = f"{type(exc).__name__}: {exc}"
@@ -126,17 +130,22 @@ class Driver(threading.Thread):
             base.close()
 
 
-def truth_error(rows: list, world: Any) -> dict:
+def truth_error(rows: list, world: Any, until_ms: float | None = None) -> dict:
     """Pose error of the daemon's per-scan poses against the world path at the scans'
-    device clock: ATE after rigid alignment, RPE over ~1 m, and the final pose error."""
+    device clock: ATE after rigid alignment, RPE over ~1 m, and the final pose error.
+    ``until_ms``: score only scans stamped up to then (the drive's end: the simulated
+    robot moves on along its path while the stopped wheels say it stands)."""
     from cgamap.mapping.evaluation import align_rigid_2d, apply_pose, ate, rpe
 
     arr = np.asarray([r for r in rows if r[1] >= 0], dtype=float).reshape(-1, 6)
+    late = arr[:, 1] > until_ms if until_ms is not None else np.zeros(len(arr), bool)
+    arr = arr[~late]
     if len(arr) < 3:
         return {"poses": int(len(arr)), "error": "too few poses to score"}
     est = arr[:, 2:5]
     ref = np.stack(world.trajectory(arr[:, 1] / 1000.0), axis=-1)
-    out: dict[str, Any] = {"poses": int(len(est)), **ate(est, ref)}
+    out: dict[str, Any] = {"poses": int(len(est)), "poses_after_drive": int(late.sum()),
+                           **ate(est, ref)}
     with contextlib.suppress(ValueError, IndexError):
         out.update(rpe(est, ref, 1.0))
     T = align_rigid_2d(est, ref)
@@ -297,7 +306,7 @@ def run_demo(out: Path, duration: float = 60.0, cfg_path: Path | None = None,
         status = request(sock, "status")
         map_reply = request(sock, "map")
         traj = request(sock, "trajectory")["rows"]
-        err = truth_error(traj, world)
+        err = truth_error(traj, world, driver.stopped_ms)
         aligned, ref = err.pop("_aligned", None), err.pop("_ref", None)
         # the map in the world frame (the daemon's map starts at its first pose)
         if "alignment" in err and map_reply["segments"]:
@@ -400,7 +409,8 @@ def write_report(out: Path, report: dict) -> None:
     lines = [
         "# cgamap demo report", "",
         f"World `{report['world']}`, {report['duration_s']:.0f} s of driving; "
-        f"{t.get('path_length_m', 0):.1f} m of path, {t.get('poses', 0)} mapped scans.", "",
+        f"{t.get('path_length_m', 0):.1f} m of path, {t.get('poses', 0)} mapped scans scored"
+        f" ({t.get('poses_after_drive', 0)} more after the drive stopped: not scored).", "",
         "| pose error against the simulation's truth | value |", "|---|---|",
     ]
     for key, label in (("ate_trans_m", "ATE translation (m, RMS, rigidly aligned)"),
