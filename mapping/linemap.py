@@ -155,10 +155,10 @@ def _fuse_groups(group, m, n, centroid, scatter, a, b):
         N[g] += n[k]
         C[g, 0] += n[k] * centroid[k, 0]
         C[g, 1] += n[k] * centroid[k, 1]
+    Nn = np.where(N > 0, N, 1.0)  # an empty group: no division by zero
     for g in range(m):
-        nn = N[g] if N[g] > 0 else 1.0
-        C[g, 0] /= nn
-        C[g, 1] /= nn
+        C[g, 0] /= Nn[g]
+        C[g, 1] /= Nn[g]
     for k in range(len(group)):
         g = group[k]
         dx, dy = centroid[k, 0] - C[g, 0], centroid[k, 1] - C[g, 1]
@@ -169,8 +169,7 @@ def _fuse_groups(group, m, n, centroid, scatter, a, b):
     rms = np.empty(m)
     for g in range(m):
         S[g, 1, 0] = S[g, 0, 1]
-        ms, _, d[g, 0], d[g, 1] = tls_fit(N[g] if N[g] > 0 else 1.0, S[g, 0, 0], S[g, 0, 1],
-                                       S[g, 1, 1])
+        ms, _, d[g, 0], d[g, 1] = tls_fit(Nn[g], S[g, 0, 0], S[g, 0, 1], S[g, 1, 1])
         rms[g] = np.sqrt(ms)
     lo = np.full(m, np.inf)
     hi = np.full(m, -np.inf)

@@ -5,7 +5,7 @@ Pipeline (issue 4, step 1; Zhang & Ghosh's split-and-merge): range filter -> gap
 merge of collinear neighbours -> minimum points / length.  The split and the merge loop over
 points and runs in one compiled kernel (:mod:`.jit`): with 180-1081 points and a few dozen
 segments a scan, numpy's per-call cost was the whole cost (0.44 ms an Intel scan, level by
-level over the scan; the kernel takes 0.03 ms).
+level over the scan; now 0.09 ms, of it 0.007 ms in the kernel).
 
 Each segment carries its point count, RMS residual, first and second moments (for exact
 refits when the map merges observations) and the covariance of its (angle, offset).
