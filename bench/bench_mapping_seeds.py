@@ -26,7 +26,7 @@ def run() -> dict:
     scans = list(intel_scans())
     odo0 = np.array([s.pose_odom for s in scans])
     keys = ("ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg", "ms_per_scan_median",
-            "final_optimisation_ms", "loop_closures", "sweep_closures")
+            "final_optimisation_ms", "loop_closures", "sweep_closures", "slips_recovered")
     out: dict = {"log": LOG, "odom_noise": "high", "seeds": {}}
     first = None
     for seed in SEEDS:

@@ -126,6 +126,11 @@ class Mapper2D:
     def pose(self) -> np.ndarray:
         return self._pose.copy()
 
+    @property
+    def slips(self) -> int:
+        """Scans the mapper found again after the odometry had put them out of reach."""
+        return self.m.slips
+
     def step(self, scan: LaserScan, odom) -> tuple[np.ndarray, float | None, int]:
         added = self.m.count + self.m.dropped
         try:
@@ -443,7 +448,12 @@ class MappingLoop:
                 self.pose = compose_pose2d(self.pose, relative(self.last_scan_odom, odom))
             q, nseg = None, 0
         else:
+            slips = self.mapper.slips
             self.pose, q, nseg = self.mapper.step(scan, odom)
+            if self.mapper.slips > slips:
+                # the odometry put this scan beyond the correction's reach (wheel slip, a
+                # push): found again from the walls (mapping.slip)
+                self.counts["slips_recovered"] += 1
         self.last_scan_odom = odom
         self.pose_stamp_ns = scan.stamp_ns
         self.scan_poses.add(scan.stamp_ns, self.pose)

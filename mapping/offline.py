@@ -89,6 +89,7 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "total_s": round(time.perf_counter() - t_all, 2),
         "loop_closures": mapper.loops,
         "sweep_closures": mapper.sweep_edges,
+        "slips_recovered": mapper.slips,
         "optimisations": mapper.optimizations,
         "line_adjustment": mapper.adjusted,
     }

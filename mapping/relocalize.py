@@ -262,27 +262,37 @@ class DistanceField:
         return self._flat[flat]
 
 
-def _rotation_hypotheses(phi_g, len_g, phi_l, len_l, P: RelocParams) -> np.ndarray:
-    """Peaks of the length-weighted histogram of undirected angle differences (mod pi)."""
+def rotation_peaks(phi_g, len_g, phi_l, len_l, bin_deg: float, peaks: int) -> np.ndarray:
+    """Eq. (9) in the Hough domain: the ``peaks`` highest peaks of the length-weighted
+    histogram of undirected angle differences phi_g - phi_l (mod pi) between every map line
+    and every scan line, strongest first, each refined by the weighted circular mean of the
+    differences near it.  A rotation by a peak (or by it + pi) turns scan lines onto map
+    lines."""
     d = np.mod(phi_g[:, None] - phi_l[None, :], np.pi)
     w = np.minimum(len_g[:, None], len_l[None, :])
-    nb = int(round(180.0 / P.angle_bin_deg))
+    nb = int(round(180.0 / bin_deg))
     idx = np.minimum((d / np.pi * nb).astype(int), nb - 1)
     hist = np.bincount(idx.ravel(), w.ravel(), nb)
     kern = np.array([0.25, 0.5, 1.0, 0.5, 0.25])
     sm = sum(k * np.roll(hist, s) for k, s in zip(kern, range(-2, 3), strict=True))
-    peaks = np.nonzero((sm >= np.roll(sm, 1)) & (sm > np.roll(sm, -1)) & (sm > 0))[0]
-    peaks = peaks[np.argsort(-sm[peaks])][: P.rotation_peaks]
-    out = []
-    for pk in peaks:
+    top = np.nonzero((sm >= np.roll(sm, 1)) & (sm > np.roll(sm, -1)) & (sm > 0))[0]
+    top = top[np.argsort(-sm[top])][:peaks]
+    out = np.empty(len(top))
+    for k, pk in enumerate(top):
         centre = (pk + 0.5) * np.pi / nb
-        # refine: weighted circular mean (period pi) of the differences near the peak
         dd = _wrap(2 * (d - centre)) / 2
-        near = np.abs(dd) < np.deg2rad(2.5 * P.angle_bin_deg)
+        near = np.abs(dd) < np.deg2rad(2.5 * bin_deg)
         if near.any():
             centre = centre + np.sum(w[near] * dd[near]) / np.sum(w[near])
-        out.extend([centre, centre + np.pi])
-    return np.array(out)
+        out[k] = centre
+    return out
+
+
+def _rotation_hypotheses(phi_g, len_g, phi_l, len_l, P: RelocParams) -> np.ndarray:
+    """Rotation peaks (:func:`rotation_peaks`), each also + pi (a line's normal may point
+    either way)."""
+    peaks = rotation_peaks(phi_g, len_g, phi_l, len_l, P.angle_bin_deg, P.rotation_peaks)
+    return np.column_stack([peaks, peaks + np.pi]).ravel()
 
 
 def _line_params(a: np.ndarray, b: np.ndarray):

@@ -1,0 +1,77 @@
+"""Loop closing while mapping: an earlier visit's submap, and the wider one tried when the
+few scans around that visit cannot place the scan (``LoopParams.wide_window``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.odometry import add_odometry_noise, relative
+from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+from synth2d import scan
+
+
+def _run(spy_factory):
+    w = get_world("loop")
+    t = np.arange(0, 1.4 * w.path_length / w.speed, 0.4 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    odo = add_odometry_noise(truth, "high", seed=2)
+    m = Mapper(MapperParams(neighbours=NeighbourParams(enabled=False)), initial_pose=truth[0])
+    m._closure_by_relocalising = spy_factory(m, m._closure_by_relocalising)
+    edges = []
+    add = m.graph.add_edge
+
+    def record(i, j, z, info, loop=False):
+        if loop:
+            edges.append((i, j, relative(relative(truth[i], truth[j]), z)))
+        return add(i, j, z, info, loop=loop)
+
+    m.graph.add_edge = record
+    for k, p in enumerate(truth):
+        s = scan(w, p, n=180, sigma=0.01, seed=k)
+        m.step(s.ranges, s.angle_min, s.angle_increment, odo[k])
+    return m, edges
+
+
+def test_submap_window():
+    seen = []
+
+    def factory(m, orig):
+        def spy(seg, sub, guess, i, j):
+            last = m._last_old(i)
+            narrow, wide = m._submap(m.poses, j, last), m._submap(m.poses, j, last, 10)
+            seen.append((len(narrow), len(wide), len(sub)))
+            return orig(seg, sub, guess, i, j)
+        return spy
+
+    _run(factory)
+    assert seen, "no closure was relocalised"
+    assert all(n <= w for n, w, _ in seen) and any(n < w for n, w, _ in seen)
+
+
+def test_a_visit_too_small_to_place_the_scan_is_tried_again_wider():
+    # every first (narrow) attempt is made to fail: each is followed by one against the
+    # wider submap, whose closures are the run's relocalised ones, and they are right
+    calls: list[tuple[int, int, int]] = []
+    found: list[tuple[int, int]] = []
+
+    def factory(m, orig):
+        def spy(seg, sub, guess, i, j):
+            calls.append((i, j, len(sub)))
+            if len(calls) >= 2 and calls[-2][:2] == (i, j):
+                got = orig(seg, sub, guess, i, j)  # the wide attempt
+                if got is not None:
+                    found.append((i, j))
+                return got
+            return None  # the narrow attempt
+        return spy
+
+    m, edges = _run(factory)
+    narrow = calls[0::2]
+    wide = calls[1::2]
+    assert len(wide) == len(narrow) == m.loop_stats["wide_tried"] > 0
+    assert all(w[:2] == n[:2] and w[2] > n[2] for n, w in zip(narrow, wide, strict=True))
+    assert found, "the wide submaps closed no loop"
+    reloc = [e for e in edges if (e[0], e[1]) in {(j, i) for i, j in found}]
+    assert len(reloc) == len(found)
+    err = np.array([e[2] for e in reloc])
+    assert np.hypot(err[:, 0], err[:, 1]).max() < 0.1 and np.degrees(np.abs(err[:, 2])).max() < 1
