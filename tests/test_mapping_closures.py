@@ -3,19 +3,23 @@ few scans around that visit cannot place the scan (``LoopParams.wide_window``)."
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from cgamap.drivers.sim.world import get_world
 from cgamap.mapping.odometry import add_odometry_noise, relative
-from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+from cgamap.mapping.slam2d import LoopParams, Mapper, MapperParams, NeighbourParams
 from synth2d import scan
 
 
-def _run(spy_factory):
+def _run(spy_factory, below: float = 1.1):
     w = get_world("loop")
     t = np.arange(0, 1.4 * w.path_length / w.speed, 0.4 / w.speed)
     truth = np.column_stack(w.trajectory(t))
     odo = add_odometry_noise(truth, "high", seed=2)
-    m = Mapper(MapperParams(neighbours=NeighbourParams(enabled=False)), initial_pose=truth[0])
+    m = Mapper(MapperParams(neighbours=NeighbourParams(enabled=False),
+                            loop=replace(LoopParams(), wide_window=10, wide_below=below)),
+               initial_pose=truth[0])
     m._closure_by_relocalising = spy_factory(m, m._closure_by_relocalising)
     edges = []
     add = m.graph.add_edge
@@ -75,3 +79,16 @@ def test_a_visit_too_small_to_place_the_scan_is_tried_again_wider():
     assert len(reloc) == len(found)
     err = np.array([e[2] for e in reloc])
     assert np.hypot(err[:, 0], err[:, 1]).max() < 0.1 and np.degrees(np.abs(err[:, 2])).max() < 1
+
+
+def test_no_wider_attempt_while_the_scan_tracks_the_map():
+    calls = []
+
+    def factory(m, orig):
+        def spy(seg, sub, guess, i, j):
+            calls.append((i, j))
+            return orig(seg, sub, guess, i, j)
+        return spy
+
+    m, _ = _run(factory, below=0.0)
+    assert calls and m.loop_stats["wide_tried"] == 0
