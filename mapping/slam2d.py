@@ -210,7 +210,6 @@ class Mapper:
         self.travel = Column((), float)
         self.calib_n = 0
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
-        self.last_fraction = 0.0  # the last scan's matched share against the map
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
@@ -322,8 +321,7 @@ class Mapper:
         self.graph.add_edge(i - 1, i, relative(prev, pose), info)
         loops, optimized = 0, False
         if P.loop.enabled:
-            self.last_fraction = 0.0 if corr is None else corr.matched_fraction
-            loops = self._close_loops(i, seg)
+            loops = self._close_loops(i, seg, 0.0 if corr is None else corr.matched_fraction)
             since = self.travel[i] - self.travel[max(self.last_opt, 0)]
             if self.pending and i - self.last_opt >= P.loop.cooldown and (
                     self.last_opt < 0 or since >= P.loop.cooldown_travel):
@@ -386,10 +384,12 @@ class Mapper:
         if node % P.map.dedupe_every == 0:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)
 
-    def _close_loops(self, i: int, seg: Segments) -> int:
+    def _close_loops(self, i: int, seg: Segments, tracking: float) -> int:
         """Match scan i against the segments of an earlier visit (its scans +- window, in
         that visit's frame) by Hough-domain relocalisation (§V), so drift of metres and
-        degrees is still caught; an unambiguous, well-scoring result becomes a loop edge."""
+        degrees is still caught; an unambiguous, well-scoring result becomes a loop edge.
+        ``tracking``: the scan's matched share against the map (the wider submap is tried
+        only under ``LoopParams.wide_below``)."""
         LP = self.params.loop
         last = self._last_old(i)
         if last < 0 or len(seg) < 2 or not len(self.map.c_node):
@@ -425,7 +425,7 @@ class Mapper:
                 best = self._closure_by_relocalising(seg, sub, guess, i, j)
                 wide = self._submap(X, j, last, LP.wide_window) if (
                     best is None and LP.wide_window > LP.window
-                    and self.last_fraction < LP.wide_below) else None
+                    and tracking < LP.wide_below) else None
                 if wide is not None:
                     # the earlier visit's few scans may show too little of what this scan
                     # sees to place it: once more against more of that visit
