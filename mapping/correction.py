@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .jit import kernel
-from .matching import LineIndex, line_normals, match_index, pair_cost
+from .matching import LineIndex, line_normals, match_index, near_box, pair_cost
 from .segments import Segments
 
 _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate quadratics exactly
@@ -255,11 +255,7 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
         centre, half = map_index.centre, map_index.half
     else:
         centre, half = 0.5 * (map_a + map_b), 0.5 * np.linalg.norm(map_b - map_a, axis=-1)
-    lo = np.minimum(ga, gb).min(axis=0)
-    hi = np.maximum(ga, gb).max(axis=0)
-    reach = 0.5 * float(L.max()) + half + 2.0 * wide
-    box = np.nonzero(np.all((centre >= lo - reach[:, None]) & (centre <= hi + reach[:, None]),
-                            axis=1))[0]
+    box = near_box(centre, half, ga, gb, 0.5 * float(L.max()) + 2.0 * wide)
     if map_index is not None:
         index = map_index.subset(box)
     else:

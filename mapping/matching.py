@@ -58,6 +58,23 @@ def line_normals(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n, n[..., 0] * a[..., 0] + n[..., 1] * a[..., 1]
 
 
+def line_angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Undirected direction angles of segments a-b in [0, pi) (a line's (theta, rho) angle
+    up to the normal's sign)."""
+    return np.mod(np.arctan2(b[..., 1] - a[..., 1], b[..., 0] - a[..., 0]), np.pi)
+
+
+def near_box(centre: np.ndarray, half: np.ndarray, a: np.ndarray, b: np.ndarray,
+             reach) -> np.ndarray:
+    """Indices of the segments (centres, half lengths) that may reach segments a-b: centre
+    within ``reach`` (scalar or per segment) plus the half length of the bounding box of
+    a-b.  A cheap first cut before the eq. (15) sphere test."""
+    lo = np.minimum(a, b).min(axis=0)
+    hi = np.maximum(a, b).max(axis=0)
+    pad = (np.asarray(reach, dtype=float) + half)[..., None]
+    return np.nonzero(np.all((centre >= lo - pad) & (centre <= hi + pad), axis=1))[0]
+
+
 @dataclass
 class LineIndex:
     """Per-segment quantities of a fixed segment set (the map side of a match), computed

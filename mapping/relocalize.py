@@ -53,7 +53,7 @@ import numpy as np
 
 from .correction import CorrectionParams, correct_pose
 from .linemap import LineMap
-from .matching import LineIndex, line_normals
+from .matching import LineIndex, line_angles, line_normals
 from .odometry import wrap_angle as _wrap
 from .segments import Segments
 
@@ -297,8 +297,7 @@ def _rotation_hypotheses(phi_g, len_g, phi_l, len_l, P: RelocParams) -> np.ndarr
 
 def _line_params(a: np.ndarray, b: np.ndarray):
     n, c = line_normals(a, b)
-    phi = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
-    return n, c, np.mod(phi, np.pi)
+    return n, c, line_angles(a, b)
 
 
 def rivals(hypotheses: list[Hypothesis], best: Hypothesis, margin: float,

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .correction import Correction, CorrectionParams, correct_batch
-from .matching import LineIndex
+from .matching import LineIndex, line_angles, near_box
 from .odometry import wrap_angle
 from .relocalize import rotation_peaks
 from .segments import Segments
@@ -56,17 +56,13 @@ def recover(seg: Segments, map_a: np.ndarray, map_b: np.ndarray, predicted,
     ga, gb = seg.a @ R + pred[:2], seg.b @ R + pred[:2]
     # map segments that could meet the scan's: centre within reach of its bounding box
     reach = float(np.max(np.hypot(*np.vstack([seg.a, seg.b]).T))) * np.sin(P.max_turn) + 0.5
-    centre = 0.5 * (map_a + map_b)
     half = 0.5 * np.linalg.norm(map_b - map_a, axis=-1)
-    lo, hi = np.minimum(ga, gb).min(axis=0), np.maximum(ga, gb).max(axis=0)
-    pad = (reach + half)[:, None]
-    near = np.nonzero(np.all((centre >= lo - pad) & (centre <= hi + pad), axis=1))[0]
+    near = near_box(0.5 * (map_a + map_b), half, ga, gb, reach)
     if 2.0 * half[near].sum() < P.min_map:
         return None
     ma, mb = map_a[near], map_b[near]
-    phi_g = np.mod(np.arctan2(mb[:, 1] - ma[:, 1], mb[:, 0] - ma[:, 0]), np.pi)
-    phi_l = np.mod(np.arctan2(gb[:, 1] - ga[:, 1], gb[:, 0] - ga[:, 0]), np.pi)
-    rot = rotation_peaks(phi_g, 2.0 * half[near], phi_l, seg.length, 1.0, P.peaks)
+    rot = rotation_peaks(line_angles(ma, mb), 2.0 * half[near], line_angles(ga, gb),
+                         seg.length, 1.0, P.peaks)
     rot = wrap_angle(2.0 * rot) / 2.0  # undirected: the turn within (-90, 90] deg
     rot = rot[np.abs(rot) <= P.max_turn]
     if not len(rot):
