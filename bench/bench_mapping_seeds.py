@@ -1,8 +1,11 @@
 """2D mapping on the real Intel log across odometry-noise seeds: the spread of the trajectory
-error (one seed can be lucky), what the finishing neighbour pass adds, and the error against
-the independent Kümmerle et al. relations next to the log's own reference poses."""
+error (one seed can be lucky), what the finishing neighbour pass adds, where the error comes
+from (the noise preset's translation and rotation terms apart, and no noise), and the error
+against the independent Kümmerle et al. relations next to the log's own reference poses."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -16,7 +19,7 @@ SEEDS = (0, 1, 2, 3)
 def run() -> dict:
     from cgamap.mapping.evaluation import load_relations, relations_error
     from cgamap.mapping.line_adjust import AdjustParams
-    from cgamap.mapping.odometry import add_odometry_noise
+    from cgamap.mapping.odometry import ODOM_NOISE_PRESETS, add_odometry_noise
     from cgamap.mapping.offline import build_map
     from cgamap.mapping.slam2d import MapperParams, NeighbourParams
     from conftest import data_dir  # bench/run.py puts tests/ on sys.path
@@ -45,6 +48,19 @@ def run() -> dict:
     out["seed0_without_line_adjustment"] = {
         **{k: bare.report[k] for k in keys},
         "icp_agreement": bare.report["icp_agreement"]["estimate"]}
+    # the error budget: the high preset's translation terms alone (length bias and noise)
+    # and its rotation terms alone (turn noise, heading drift), then no noise at all -- the
+    # log's own increments, which are the reference's, so along a corridor where the walls
+    # leave the position open the estimate follows the reference by construction
+    hi = ODOM_NOISE_PRESETS["high"]
+    budget = {"translation_only": replace(hi, rot_rel=0.0, rot_abs=0.0, rot_per_m=0.0,
+                                          drift_per_m=0.0),
+              "rotation_only": replace(hi, trans_bias=0.0, trans_rel=0.0, trans_abs=0.0),
+              "none": "none"}
+    out["seed0_error_budget"] = {
+        name: {k: build_map(scans, add_odometry_noise(odo0, noise, SEEDS[0])).report[k]
+               for k in ("ate_trans_m", "ate_rot_deg", "slips_recovered")}
+        for name, noise in budget.items()}
     # the reference is SLAM output: which of estimate and reference follows the raw ranges
     out["icp_agreement_seed0"] = first.report["icp_agreement"]
     rel_path = data_dir() / RELATIONS
