@@ -4,10 +4,11 @@ T = T_odo + T_err, with the errors from matching the scan's segments against the
 The errors are solved by robust (Cauchy-weighted) Gauss-Newton least squares on
 point-to-line distances: each observed segment matched to a map line contributes its squared
 distance integrated along the segment, exactly as two Gauss points per segment (the distance
-is linear along a segment).  Matches are re-found at every iteration with gates that shrink,
-so a large odometry error is pulled in step by step.  The odometry prediction enters as a
-prior (its covariance grows with the step), which keeps the pose defined along a corridor
-where the walls fix only one direction.  The returned covariance (inverse information) and
+is linear along a segment); with ``min_length`` a short segment's offset counts as if it
+were that long (a third point, at its middle, carries what it lacks).  Matches are re-found
+at every iteration with gates that shrink, so a large odometry error is pulled in step by
+step.  The odometry prediction enters as a prior (its covariance grows with the step), which
+keeps the pose defined along a corridor where the walls fix only one direction.  The returned covariance (inverse information) and
 the matched fraction of the scan are the match-quality figures.
 """
 
@@ -40,6 +41,11 @@ class CorrectionParams:
     # matching needs it (:class:`~cgamap.mapping.slam2d.NeighbourParams`): a wall cut to a
     # stub by the other scan's field of view otherwise tilts the pair by a degree
     extrapolation: float = 0.0
+    # a segment shorter than this (m) fixes its line's offset as well as one this long: the
+    # few points of a door jamb lie on it to a centimetre, but integrated along its length it
+    # would weigh next to nothing against the walls, and along a corridor it is what fixes the
+    # position (its direction keeps the weight of its own length; 0: off)
+    min_length: float = 0.0
 
 
 @dataclass
@@ -105,7 +111,8 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
         f(index.half, dtype=float), f(index.n, dtype=float), f(index.c, dtype=float), pred,
         w_prior, np.array(params.gates, dtype=float),
         np.sin(np.deg2rad(np.array(params.angle_gates_deg, dtype=float))),
-        params.sigma_point ** 2, params.converged_gate, params.extrapolation)
+        params.sigma_point ** 2, params.converged_gate, params.extrapolation,
+        params.min_length)
     total = np.linalg.norm(seg_b - seg_a, axis=-1).sum(axis=1)
     return BatchCorrection(x, _inverse3(H), matched / np.maximum(total, 1e-12), rms, matches,
                            info)
@@ -134,7 +141,7 @@ def _inverse3_into(H, out):
 
 @kernel
 def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, var,
-                  converged_gate, extrapolation):
+                  converged_gate, extrapolation, min_length):
     """The robust Gauss-Newton passes of :func:`correct_batch`, problem by problem.
 
     Each pass moves the scan segments by the current pose, matches each to its cheapest
@@ -151,7 +158,7 @@ def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, v
     rms = np.zeros(P)
     matched = np.zeros(P)
     two_pi = 2.0 * np.pi
-    tg = (0.5 - _G, 0.5 + _G)
+    tg = (0.5 - _G, 0.5 + _G, 0.5)
     H = np.zeros((3, 3))
     g = np.zeros(3)
     Hi = np.zeros((1, 3, 3))
@@ -182,8 +189,12 @@ def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, v
                     continue
                 mlen += length
                 nx, ny, cl = n[p, best, 0], n[p, best, 1], c[p, best]
-                wq = 0.5 * length
-                for t in tg:
+                for q in range(3):
+                    # two Gauss points, then the midpoint with what a short one lacks
+                    t = tg[q]
+                    wq = 0.5 * length if q < 2 else max(min_length - length, 0.0)
+                    if wq <= 0.0:
+                        continue
                     qx, qy = ax + t * (bx - ax), ay + t * (by - ay)
                     e = nx * qx + ny * qy - cl
                     j2 = ny * (qx - x0) - nx * (qy - x1)
@@ -204,8 +215,9 @@ def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, v
                     g[0] += w * nx * e
                     g[1] += w * ny * e
                     g[2] += w * j2 * e
-                    num += wq * e * e
-                    den += wq
+                    if q < 2:  # the residual: the segment's points, as they are
+                        num += wq * e * e
+                        den += wq
             H[1, 0], H[2, 0], H[2, 1] = H[0, 1], H[0, 2], H[1, 2]
             r2 = (x2 - pred[p, 2] + np.pi) % two_pi - np.pi
             g0 = g[0] + w_prior[p, 0] * (x0 - pred[p, 0])

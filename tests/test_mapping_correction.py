@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from cgamap.mapping.correction import _inverse3, correct_batch, correct_pose
+from cgamap.mapping.correction import CorrectionParams, _inverse3, correct_batch, correct_pose
 from cgamap.mapping.evaluation import align_rigid_2d, apply_pose, ate, rpe
 from cgamap.mapping.matching import LineIndex
 from cgamap.mapping.posegraph import PoseGraph, relative, wrap
@@ -296,3 +296,28 @@ def test_a_stub_extrapolated_over_metres_does_not_tilt_the_match():
     # wall unless points past the stub's end count with its direction's uncertainty
     assert abs(_stub_pair(0.0)) > 0.1
     assert abs(_stub_pair(0.1)) < 0.03
+
+
+def test_a_short_cross_piece_weighs_as_a_longer_one_along_a_corridor():
+    # a corridor that narrows by 0.2 m at x = 2: that step is all that fixes x
+    w = world([(-10, -1, 10, -1), (-10, 1, 2, 1), (2, 1, 2, 0.8), (2, 0.8, 10, 0.8)])
+    seg = segments_from_scan(scan(w, (0.0, 0.0, 0.0), n=360))
+    L = seg.length
+    step_piece = np.abs(seg.b[:, 1] - seg.a[:, 1]) > 0.5 * L  # the cross piece(s)
+    assert step_piece.any() and L[step_piece].max() < 0.25
+    idx = LineIndex.of(seg.a[None], seg.b[None])
+
+    def solve(min_length, x0):
+        return correct_batch(seg.a[None], seg.b[None], idx, np.array([[x0, 0.0, 0.0]]), 1.0,
+                             CorrectionParams(min_length=min_length))
+
+    # at the true pose: along the corridor the piece now counts as a 0.5 m one, across it
+    # and in the residual nothing changes
+    plain, short = solve(0.0, 0.0), solve(0.5, 0.0)
+    ratio = short.info_data[0, 0, 0] / plain.info_data[0, 0, 0]
+    assert ratio == pytest.approx((0.5 * step_piece.sum()) / L[step_piece].sum(), rel=0.05)
+    assert short.info_data[0, 1, 1] == pytest.approx(plain.info_data[0, 1, 1], rel=0.02)
+    assert short.rms[0] == pytest.approx(plain.rms[0], abs=1e-9)
+    # from 8 cm off along the corridor it pulls the pose back against the prior harder
+    plain, short = solve(0.0, 0.08), solve(0.5, 0.08)
+    assert abs(short.pose[0, 0]) < abs(plain.pose[0, 0]) - 0.01
