@@ -8,8 +8,9 @@ is linear along a segment); with ``min_length`` a short segment's offset counts 
 were that long (a third point, at its middle, carries what it lacks).  Matches are re-found
 at every iteration with gates that shrink, so a large odometry error is pulled in step by
 step.  The odometry prediction enters as a prior (its covariance grows with the step), which
-keeps the pose defined along a corridor where the walls fix only one direction.  The returned covariance (inverse information) and
-the matched fraction of the scan are the match-quality figures.
+keeps the pose defined along a corridor where the walls fix only one direction.  The returned
+covariance (inverse information) and the matched fraction of the scan are the match-quality
+figures.
 """
 
 from __future__ import annotations

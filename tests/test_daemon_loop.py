@@ -219,15 +219,20 @@ def test_the_daemon_bounds_its_pose_graph():
     assert len(small.segments()) >= 4  # the map outlives the dropped nodes
 
 
-def test_a_push_the_wheels_did_not_see_is_counted_and_mapped_through():
+@pytest.mark.parametrize("push", ["turn", "sideways"])
+def test_a_push_the_wheels_did_not_see_is_counted_and_mapped_through(push):
     # from the 21st scan on the odometry reports the heading 3.7 deg short (the robot was
-    # pushed round): the mapper finds the scan again from the walls, and the daemon counts it
+    # pushed round), or the robot half a metre to its right (pushed sideways, or its wheels
+    # spun): the mapper finds the scan again from the walls, and the daemon counts it
     loop = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0), devices={})
     world = get_world("loop")
     ts = np.arange(40) * 0.1 / world.speed
+    th20 = world.trajectory(ts[20])[2]
+    error = ([0.0, 0.0, 0.065] if push == "turn"
+             else [-0.5 * np.sin(th20), 0.5 * np.cos(th20), 0.0])
     for i, t in enumerate(ts):
         truth = np.array(world.trajectory(t), dtype=float)
-        odo = truth - [0.0, 0.0, 0.065 if i >= 20 else 0.0]
+        odo = truth - (np.array(error) if i >= 20 else 0.0)
         ns = int(t * 1e9)
         loop.handle("base", OdometryPose(stamp_ns=ns, x=odo[0], y=odo[1], theta=odo[2]))
         loop.handle("laser", scan_at(world, t, i, ns))
