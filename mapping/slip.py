@@ -149,12 +149,13 @@ def _best(seg: Segments, ma: np.ndarray, mb: np.ndarray, near: np.ndarray, hyp: 
 
 def shift_votes(ga: np.ndarray, gb: np.ndarray, length: np.ndarray, ma: np.ndarray,
                 mb: np.ndarray, P: SlipParams, angle_tol: float = np.deg2rad(2.0),
-                min_cross: float = np.deg2rad(30.0)) -> np.ndarray:
+                min_cross: float = np.deg2rad(30.0), max_lines: int = 400) -> np.ndarray:
     """Shifts (<= ``P.shifts``, strongest first) that move scan segments ga-gb onto map
     segments ma-mb, from the Hough domain: a scan line and a map line of the same direction
     fix the shift along the map line's normal (their rho difference); two of them on lines
     crossing at ``min_cross`` or more fix it, and each such pair votes, weighted by the
-    shorter of its lines, on ``P.shift_cell`` cells within ``P.max_shift``."""
+    shorter of its lines, on ``P.shift_cell`` cells within ``P.max_shift`` (of the line
+    pairs, the ``max_lines`` longest)."""
     n, c = line_normals(ma, mb)
     same = np.abs(wrap_angle(2.0 * (line_angles(ma, mb)[:, None]
                                     - line_angles(ga, gb)[None, :]))) / 2.0 < angle_tol
@@ -164,8 +165,12 @@ def shift_votes(ga: np.ndarray, gb: np.ndarray, length: np.ndarray, ma: np.ndarr
     j, i = np.nonzero(same & (np.abs(delta) <= P.max_shift))
     if len(j) < 2:
         return np.zeros((0, 2))
-    A, d = n[j], delta[j, i]
     w = np.minimum(ml[j], length[i])
+    if len(j) > max_lines:
+        # the pairs of pairs are quadratic: a cluttered map near the scan keeps the longest
+        keep = np.argsort(-w)[:max_lines]
+        j, i, w = j[keep], i[keep], w[keep]
+    A, d = n[j], delta[j, i]
     det = A[:, None, 0] * A[None, :, 1] - A[:, None, 1] * A[None, :, 0]
     ok = (np.abs(det) > np.sin(min_cross)) & (i[:, None] < i[None, :])
     p, q = np.nonzero(ok)
@@ -188,7 +193,7 @@ def shift_votes(ga: np.ndarray, gb: np.ndarray, length: np.ndarray, ma: np.ndarr
     # peak's neighbour cells are the same shift, and a look-alike must get its own try
     top: list[int] = []
     for k in np.argsort(-votes):
-        if all(np.abs(cells[k] - cells[t]).max() * P.shift_cell > P.rival_apart for t in top):
+        if all(np.abs(cells[k] - cells[u]).max() * P.shift_cell > P.rival_apart for u in top):
             top.append(int(k))
             if len(top) == P.shifts:
                 break

@@ -90,6 +90,8 @@ def test_shift_votes_peak_at_the_true_shift():
     got = shift_votes(ga, gb, here.length, full.a, full.b, SlipParams())
     assert len(got) >= 1
     assert np.hypot(*(got[0] - shift)) < 0.05
+    few = shift_votes(ga, gb, here.length, full.a, full.b, SlipParams(), max_lines=8)
+    assert np.hypot(*(few[0] - shift)) < 0.05  # the longest line pairs alone suffice here
     near = shift_votes(ga, gb, here.length, full.a, full.b, SlipParams(max_shift=0.5))
     assert not len(near) or np.hypot(*(near[0] - shift)) > 0.1  # beyond the search
 
