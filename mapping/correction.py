@@ -147,8 +147,9 @@ def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, v
 
     Each pass moves the scan segments by the current pose, matches each to its cheapest
     map candidate under the pass's gates (:func:`.matching.pair_cost`), and adds the
-    squared point-to-line distance at the segment's two Gauss points (Cauchy-weighted at
-    a third of the gate, at least 3 cm; with ``extrapolation``, a point past the map
+    squared point-to-line distance at the segment's two Gauss points, and for a segment
+    shorter than ``min_length`` at its midpoint with the weight it lacks (Cauchy-weighted
+    at a third of the gate, at least 3 cm; with ``extrapolation``, a point past the map
     segment's end weighs less as the extrapolated line's direction is less sure),
     linearised in (x, y, theta), to the odometry prior (eq. 9 wraps theta)."""
     P, k, m = sa.shape[0], sa.shape[1], centre.shape[1]
