@@ -114,9 +114,9 @@ def recover(seg: Segments, map_a: np.ndarray, map_b: np.ndarray, predicted,
 
 
 def _place(seg: Segments, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    R = np.array([[c, s], [-s, c]])  # row vectors: p @ R rotates by theta
-    return seg.a @ R + pose[:2], seg.b @ R + pose[:2]
+    """The scan's segment end points (a, b) in the map at ``pose``."""
+    g = seg.transformed(*(float(v) for v in pose))
+    return g.a, g.b
 
 
 def _best(seg: Segments, ma: np.ndarray, mb: np.ndarray, near: np.ndarray, hyp: np.ndarray,
