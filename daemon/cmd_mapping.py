@@ -64,7 +64,7 @@ def _progress(label: str, quiet: bool):
     return show
 
 
-def _read_log(path: str, lenient: bool):
+def _read_log(path: str, lenient: bool, quiet: bool = False):
     from cgamap.drivers.carmen import CarmenFormatError, CarmenStats, read_scans
 
     p = Path(path)
@@ -81,6 +81,9 @@ def _read_log(path: str, lenient: bool):
         raise UsageError(f"--log: {path}: cannot read ({exc})") from None
     if not scans:
         raise UsageError(f"--log: {path}: no laser scans (FLASER/ROBOTLASER1) in the log")
+    if st.saturated_range is not None and not quiet:
+        print(f"--log: {st.saturated_beams} readings of {st.saturated_range:g} m (the log's "
+              "longest, repeated) taken as no return", file=sys.stderr)
     return scans, st
 
 
@@ -124,7 +127,7 @@ def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.render import export_occupancy, render_png
     from cgamap.mapping.slam2d import LoopParams, MapperParams
 
-    scans, st = _read_log(args.log, args.lenient)
+    scans, st = _read_log(args.log, args.lenient, args.quiet)
     relations = _read_relations(args.relations) if args.relations else None
     out = Path(args.out)
     try:
@@ -152,6 +155,9 @@ def run_build(args: argparse.Namespace) -> int:
     write_text_atomic(out / "trajectory.csv", "t,x,y,theta\n" + rows)
     report = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
               "skipped_lines": st.skipped, **res.report}
+    if st.saturated_range is not None:
+        report["no_return_reading_m"] = st.saturated_range
+        report["no_return_readings"] = st.saturated_beams
     if mount is not None:
         report["laser_mount"] = [round(float(v), 5) for v in mount]
     if relations is not None:

@@ -109,6 +109,7 @@ def test_intel_log():
     st = CarmenStats()
     scans = read_scans(path, stats=st)
     assert len(scans) == 910 and st.skipped == 0
+    assert st.saturated_range is None  # its no-return is 81.83 m, above the reader's limit
     assert all(len(s.ranges) == 180 for s in scans)
     stamps = np.array([s.stamp_ns for s in scans])
     # the real log's ipc stamps step back a little in 4 places; kept as recorded
@@ -150,3 +151,39 @@ def test_writer_refuses_what_flaser_cannot_say():
         flaser_line(_scan(angle_min=-1.0))
     with pytest.raises(ValueError, match="neither pose_ref nor pose_odom"):
         flaser_line(_scan(pose_ref=None, pose_odom=None))
+
+
+def _wall_log(path, top: str, scans: int = 30) -> None:
+    """A wall 3-4 m ahead on the right half; the left half's beams read ``top``."""
+    lines = []
+    for k in range(scans):
+        r = [f"{3.0 + 0.005 * i + 0.01 * k:.3f}" for i in range(90)] + [top] * 90
+        lines.append(f"FLASER 180 {' '.join(r)} {0.1 * k} 0 0 {0.1 * k} 0 0 {k} host {k}\n")
+    path.write_text("".join(lines))
+
+
+def test_a_no_return_written_as_a_reading_is_dropped(tmp_path):
+    # an LMS in its 8 m mode says 8.18 for "nothing there"; as points it is an arc that
+    # travels with the robot
+    log = tmp_path / "sat.log"
+    _wall_log(log, "8.18")
+    st = CarmenStats()
+    scans = read_scans(log, stats=st)
+    assert st.saturated_range == pytest.approx(8.18) and st.saturated_beams == 30 * 90
+    assert all(np.isnan(s.ranges[90:]).all() and np.isfinite(s.ranges[:90]).all()
+               for s in scans)
+    assert scans[0].range_max == pytest.approx(8.18)
+    kept = read_scans(log, saturation=False)
+    assert np.all(kept[0].ranges[90:] == 8.18)
+
+
+def test_a_longest_reading_seen_once_is_a_reading(tmp_path):
+    log = tmp_path / "far.log"
+    _wall_log(log, "81.83")  # the 80 m mode's no-return: NaN by the reader's maximum
+    text = log.read_text().replace(" 3.000 ", " 25.370 ", 1)  # one far wall, once
+    log.write_text(text)
+    st = CarmenStats()
+    scans = read_scans(log, stats=st)
+    assert st.saturated_range is None and st.saturated_beams == 0
+    assert scans[0].ranges[0] == pytest.approx(25.37)
+    assert sum(np.isfinite(s.ranges).sum() for s in scans) == 30 * 90

@@ -52,6 +52,27 @@ def test_open_campus_maps_from_far_facades(tmp_path):
     assert rep["odometry"]["ate_trans_m"] > 5.0  # the odometry alone is far off
 
 
+def test_a_log_whose_no_return_is_a_reading(tmp_path, capsys):
+    # an LMS in its 8 m mode logged as is: "nothing within 8 m" reads 8.18 m.  Taken as
+    # points, those arcs travel with the robot (measured: 51 segments in the map, ATE
+    # 0.13 m / 0.30 deg; dropped: 12 segments, 0.07 m / 0.18 deg, the walls beyond 8 m lost)
+    from cgamap.drivers.carmen import write_carmen
+    from cgamap.drivers.sim.scanlog import simulated_scans
+
+    scans = simulated_scans(get_world("loop"))
+    for s in scans:
+        s.ranges = np.where(np.isnan(s.ranges) | (s.ranges > 8.18), 8.18, s.ranges)
+    log = tmp_path / "lms8m.log"
+    write_carmen(log, scans)
+    assert main(["map", "build", "--log", str(log), "--out", str(tmp_path / "m"),
+                 "--odom-noise", "high", "--seed", "0"]) == 0
+    assert "readings of 8.18 m (the log's longest, repeated) taken as no return" in (
+        capsys.readouterr().err)
+    rep = json.loads((tmp_path / "m" / "report.json").read_text())
+    assert rep["no_return_reading_m"] == pytest.approx(8.18) and rep["no_return_readings"] > 500
+    assert rep["segments"] <= 20 and rep["ate_trans_m"] < 0.1, rep
+
+
 def test_a_laser_off_the_robots_centre(tmp_path):
     # a ROBOTLASER1 log whose laser sits 25 cm ahead of the robot's centre, turned 1.7 deg:
     # the robot's odometry is carried to the laser by the offset the log's poses show
