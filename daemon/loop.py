@@ -579,6 +579,9 @@ class MappingLoop:
                "sweep_edges": int(job.sweep_edges),
                "max_shift_m": round(float(got["max_shift_m"]), 4),
                "ms": round(1000 * (time.perf_counter() - self._optimize_t0), 1)}
+        if getattr(job, "calibration", None):
+            from cgamap.mapping.slam2d import calibration_figures
+            out["odometry_calibration"] = calibration_figures(job.calibration)
         self.counts["optimized"] += 1
         self.last_optimize = out
         self._event("optimize", dict(out))

@@ -293,3 +293,41 @@ def add_odometry_noise(poses, preset: str | OdometryNoise = "high", seed: int = 
     out[:, 2] += g_th * (noise.rot_rel * turn + noise.rot_abs + noise.rot_per_m * d)
     out[:, 2] += noise.drift_per_m * d
     return integrate_increments(out, p[0])
+
+
+def step_calibration(z, info, raw, min_step: float = 0.2, min_steps: int = 20,
+                     iterations: int = 4, huber: float = 2.0) -> tuple[float, float, int] | None:
+    """Odometry calibration from scan matches of consecutive steps: (scale, drift per metre,
+    steps used), or None with fewer than ``min_steps`` steps of ``min_step`` metres or more.
+
+    ``z`` (k, 3) each step measured by matching its two scans (the later pose in the
+    earlier's frame), ``info`` (k, 3, 3) that match's information, ``raw`` (k, 3) the
+    odometry's own step.  The model is the one the mapper predicts with:
+    ``z_xy = scale * raw_xy`` and ``z_theta = raw_theta - drift * |raw_xy|``, solved by
+    weighted least squares with each match's information, so a corridor step (known only
+    across the corridor) says nothing about the scale, and Huber weights (``huber`` sigma)
+    leave out the odd wrong match or slip.  Unlike an average of step ratios this is not
+    pulled to the calibration the steps were predicted with."""
+    z, info, raw = (np.asarray(v, float) for v in (z, info, raw))
+    d = np.hypot(raw[:, 0], raw[:, 1])
+    use = d >= min_step
+    if np.count_nonzero(use) < min_steps:
+        return None
+    z, info, raw, d = z[use], info[use], raw[use], d[use]
+    k = len(d)
+    A = np.zeros((k, 3, 2))            # residual = y - A @ (scale, drift)
+    A[:, 0, 0], A[:, 1, 0], A[:, 2, 1] = raw[:, 0], raw[:, 1], -d
+    y = np.column_stack([z[:, 0], z[:, 1], wrap_angle(z[:, 2] - raw[:, 2])])
+    w = np.ones(k)
+    At_info = np.einsum("kra,krs->kas", A, info)
+    for _ in range(iterations):
+        H = np.einsum("k,kas,ksb->ab", w, At_info, A)
+        b = np.einsum("k,kas,ks->a", w, At_info, y)
+        try:
+            x = np.linalg.solve(H, b)
+        except np.linalg.LinAlgError:
+            return None
+        r = y - np.einsum("ksa,a->ks", A, x)
+        m = np.sqrt(np.maximum(np.einsum("ks,kst,kt->k", r, info, r), 0.0))
+        w = np.where(m <= huber, 1.0, huber / np.maximum(m, 1e-12))
+    return float(x[0]), float(x[1]), k

@@ -19,7 +19,7 @@ from .linemap import LineMap
 from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
 from .relocalize import DistanceField, RelocParams, relocalize
 from .segments import SegmentParams, extract_segments
-from .slam2d import Mapper, MapperParams
+from .slam2d import Mapper, MapperParams, calibration_figures
 
 
 @dataclass
@@ -93,6 +93,8 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "optimisations": mapper.optimizations,
         "line_adjustment": mapper.adjusted,
     }
+    if mapper.calibration:
+        report["odometry_calibration"] = calibration_figures(mapper.calibration)
     ref = [getattr(s, "pose_ref", None) for s in scans]
     if n >= 2 and all(r is not None for r in ref):
         say("scoring against the log's reference poses (ATE, RPE, ICP agreement) ...")

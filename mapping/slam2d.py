@@ -31,7 +31,7 @@ from .line_adjust import AdjustParams, Contributions, adjust, associate
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
 from .odometry import compose_pose2d as compose
-from .odometry import relative
+from .odometry import relative, step_calibration
 from .odometry import wrap_angle as wrap
 from .posegraph import Column, EdgeArrays, PoseGraph
 from .relocalize import Hypothesis, RelocParams, inlier_fraction, relocalize, rivals
@@ -153,6 +153,11 @@ class NeighbourParams:
         gates=(0.6, 0.4, 0.25, 0.15, 0.1, 0.06),
         angle_gates_deg=(15.0, 10.0, 7.0, 5.0, 3.0, 2.5), extrapolation=0.1,
         min_length=0.5))
+    # the odometry calibration re-estimated from each round's consecutive scan pairs
+    # (:func:`.odometry.step_calibration`), and the scan-to-map steps re-predicted with it
+    # (:func:`_recalibrate`): along a corridor a step is the odometry's, and the online
+    # estimate wanders by about 1 % in scale and 0.25 deg/m in drift
+    recalibrate: bool = True
 
 
 @dataclass
@@ -214,6 +219,12 @@ class Mapper:
         self.last_loop = -10 ** 9
         # odometry distance from the start, per node (an array: each scan searches it)
         self.travel = Column((), float)
+        # per node: its raw odometry step (x, y, theta) and the calibration (scale, drift)
+        # it was predicted with, which the finishing pass re-estimates (:func:`_recalibrate`)
+        self.odo_step = Column((5,), float)
+        # ... and how much of its prediction its pose kept (:func:`prediction_share`)
+        self.odo_share = Column((3, 3), float)
+        self.calibration: dict = {}  # the last finishing pass's estimate
         self.calib_n = 0
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
@@ -278,18 +289,22 @@ class Mapper:
             if i and i not in self.anchors:
                 self.anchors.append(i)
             self.travel.append(self.travel[-1] if len(self.travel) else 0.0)
+            self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m))
+            self.odo_share.append(np.zeros((3, 3)))
             self.last_odom = odom_l
             self._merge(seg, i, None)
             return StepResult(pose, len(seg), None)
         raw = relative(self.last_odom, odom_l)
         self.last_odom = odom_l
         d_odo = float(np.hypot(raw[0], raw[1]))
+        self.odo_step.append((*raw, self.scale, self.drift_per_m))
         inc = np.array([raw[0] * self.scale, raw[1] * self.scale,
                         raw[2] - self.drift_per_m * d_odo])
         prev = self.graph.poses[-1]
         pred = compose(prev, inc)
         step = float(d_odo + 0.3 * abs(inc[2]))
         pose = pred
+        share = np.eye(3)
         if len(self.map) and len(seg):
             corr = correct_pose(seg, self.map.a, self.map.b, pred, step, P.correction)
             slipped = None
@@ -300,6 +315,9 @@ class Mapper:
                     corr = slipped
                     self.slips += 1
             pose = corr.pose
+            # a slip's pose owes nothing to the prediction
+            share = (np.zeros((3, 3)) if slipped is not None else
+                     prediction_share(corr.cov, P.correction, step, prev[2]))
             if (slipped is None and corr.matched_fraction >= P.calib_min_fraction
                     and d_odo > 0.2):
                 got = relative(prev, pose)
@@ -309,6 +327,7 @@ class Mapper:
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
         self.travel.append(self.travel[-1] + d_odo)
+        self.odo_share.append(share)
         if corr is not None and corr.matched_fraction > 0.3:
             st, sr = P.seq_sigma
             if P.seq_from_cov:
@@ -368,6 +387,8 @@ class Mapper:
             setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = Column((), float, self.travel[cut:])
+        self.odo_step = Column((5,), float, self.odo_step[cut:])
+        self.odo_share = Column((3, 3), float, self.odo_share[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
         # edge numbers of the neighbour block shift with the edges dropped before them
         n0, n1 = self._neighbour_block
@@ -601,6 +622,8 @@ class Mapper:
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, LP if do_sweep else None,
                          np.array(self.travel, float), source=self,
+                         steps=self.odo_step.array().copy(),
+                         shares=self.odo_share.array().copy(),
                          lines=Contributions.of(self.map) if AP.enabled else None,
                          adjust=AP if AP.enabled else None)
 
@@ -640,6 +663,11 @@ class Mapper:
         self.sweep_edges = job.sweep_edges
         if job.adjusted:
             self.adjusted = job.adjusted
+        if job.calibration:
+            # the whole run's estimate predicts the next scans better than the online one
+            self.calibration = job.calibration
+            self.scale = job.calibration["scale"]
+            self.drift_per_m = job.calibration["drift_per_m"]
         refresh(self.map, new)
         dedupe(self.map, self.params.map)
         self.optimizations += 1
@@ -791,6 +819,9 @@ class FinishJob:
     lines: Contributions | None = None         # the map's scan segments, for ...
     adjust: AdjustParams | None = None         # ... the line adjustment (None: not)
     adjusted: dict = field(default_factory=dict)  # its figures
+    steps: np.ndarray | None = None  # per node: raw odometry step and its calibration (5,)
+    shares: np.ndarray | None = None  # ... and the share of the prediction it kept (3, 3)
+    calibration: dict = field(default_factory=dict)  # the re-estimated one, when found
 
     @property
     def nodes(self) -> int:
@@ -827,6 +858,8 @@ class FinishJob:
             both = EdgeArrays.concat([swept, got])
             self.block, self.weighted = _replace_neighbour_edges(
                 g, self.block, self.weighted, both, NP)
+            if NP.recalibrate and self.steps is not None:
+                self._recalibrate(got)
             g.optimize(fixed=self.anchors)
             self.edges = both
         if self.lines is not None and self.adjust is not None:
@@ -836,6 +869,54 @@ class FinishJob:
             g.poses = X
         self.poses = np.array(g.poses)
         return self
+
+
+    def _recalibrate(self, got: EdgeArrays) -> None:
+        """Re-estimate the odometry calibration from ``got``'s pairs of consecutive scans
+        and re-predict the graph's scan-to-map steps with it: each step's measurement moves
+        by what the new calibration changes in its prediction, times the share of the
+        prediction its pose kept (along a corridor all of it, where walls fixed it none).
+        Intel, high noise, mean ATE over seeds 0-15: 0.0585 -> 0.0576 m (with the whole
+        change applied to every step 0.0571 m; with the preset's true calibration so
+        applied, seeds 0-7: 0.0563 -> 0.0536 m)."""
+        g, st = self.graph, self.steps
+        nxt = np.nonzero(got.j == got.i + 1)[0]
+        est = step_calibration(got.z[nxt], got.info[nxt], st[got.j[nxt], :3])
+        if est is None:
+            return
+        scale, drift, used = est
+        ei, ej, loop = g.ei.array(), g.ej.array(), g.loop.array()
+        e = np.nonzero(~loop & (ej == ei + 1))[0]  # scan-to-map steps (passes' edges: loop)
+        k = ej[e]
+        d = np.hypot(st[k, 0], st[k, 1])
+        moved = np.column_stack([(scale - st[k, 3]) * st[k, 0], (scale - st[k, 3]) * st[k, 1],
+                                 -(drift - st[k, 4]) * d])
+        z = g.z.array()
+        z[e] += np.einsum("kab,kb->ka", self.shares[k], moved)
+        st[k, 3], st[k, 4] = scale, drift  # what they are predicted with now
+        self.calibration = {"scale": scale, "drift_per_m": drift, "steps": used}
+
+
+def calibration_figures(cal: dict) -> dict:
+    """A finishing pass's odometry calibration for reports: ``scale`` (true / odometry
+    distance), ``drift_deg_per_m`` (heading the odometry gains per metre), ``steps`` used."""
+    return {"scale": round(float(cal["scale"]), 5),
+            "drift_deg_per_m": round(float(np.degrees(cal["drift_per_m"])), 4),
+            "steps": int(cal["steps"])}
+
+
+def prediction_share(cov: np.ndarray, params: CorrectionParams, step: float,
+                     heading: float) -> np.ndarray:
+    """How much of a change in its prediction a corrected pose would have followed, in the
+    frame of the pose it was predicted from (3, 3): the posterior covariance times the
+    odometry prior's information, (I - K) of a Kalman update.  Along a corridor ~1 (the
+    pose is the prediction), across it ~0 (the walls placed it)."""
+    st = params.prior_trans + params.prior_trans_per_m * step
+    sr = params.prior_rot + params.prior_rot_per_m * step
+    share = cov * np.array([st ** -2, st ** -2, sr ** -2])  # cov @ diag(prior information)
+    c, s = np.cos(heading), np.sin(heading)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return R.T @ share @ R
 
 
 def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams,

@@ -81,6 +81,10 @@ def test_optimize_corrects_the_drift_and_moves_the_map(name, laps, seed, gain):
           f"{map1:.4f} m")
     assert FIELDS <= set(got) and got["edges"] > got["nodes"]  # several neighbours per scan
     assert got["nodes"] == loop.mapper.m.count and got["max_shift_m"] > 0
+    # the pass re-estimates the odometry (2 % long, 0.5 deg/m) and the live mapper adopts it
+    cal = got["odometry_calibration"]
+    assert cal["scale"] == pytest.approx(1 / 1.02, abs=0.015), cal
+    assert loop.mapper.m.scale == pytest.approx(cal["scale"], abs=1e-5)
     assert ate1 <= ate0 * gain + 0.003, (ate0, ate1)
     assert map1 <= map0 + 0.01, (map0, map1)
     # the trajectory's rows (by scan stamp) are the kept nodes' new poses

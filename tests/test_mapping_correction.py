@@ -321,3 +321,30 @@ def test_a_short_cross_piece_weighs_as_a_longer_one_along_a_corridor():
     # from 8 cm off along the corridor it pulls the pose back against the prior harder
     plain, short = solve(0.0, 0.08), solve(0.5, 0.08)
     assert abs(short.pose[0, 0]) < abs(plain.pose[0, 0]) - 0.01
+
+
+@pytest.mark.parametrize("heading", [0.0, 0.7])
+def test_prediction_share_follows_what_the_walls_leave_open(heading):
+    # a corridor along the robot's heading: a change in the prediction along it stays in
+    # the pose (share 1), across it the walls hold (share ~0); the share is in the frame of
+    # the pose predicted from, so turning the whole scene does not change it
+    from cgamap.mapping.slam2d import prediction_share
+
+    c_, s_ = np.cos(heading), np.sin(heading)
+    walls = [(-10, -1, 10, -1), (-10, 1, 10, 1)]
+    turned = np.array([(c_ * x0 - s_ * y0, s_ * x0 + c_ * y0, c_ * x1 - s_ * y1,
+                        s_ * x1 + c_ * y1) for x0, y0, x1, y1 in walls])
+    seg = segments_from_scan(scan(world(turned), (0.0, 0.0, heading)))
+    P = CorrectionParams()
+    moved = []
+    for shift in (np.zeros(2), np.array([0.05, 0.05])):
+        pred = np.array([*(np.array([[c_, -s_], [s_, c_]]) @ (np.array([0.3, 0.02]) + shift)),
+                         heading])
+        c = correct_pose(seg, turned[:, :2], turned[:, 2:], pred, step=1.0, params=P)
+        moved.append(c.pose)
+    share = prediction_share(c.cov, P, 1.0, heading)
+    assert share[0, 0] == pytest.approx(1.0, abs=0.02)
+    assert abs(share[1, 1]) < 0.2  # the correction's information is modest by design
+    # what the pose did when the prediction moved 5 cm along and across: the share's answer
+    body = np.array([[c_, s_], [-s_, c_]]) @ (moved[1][:2] - moved[0][:2])
+    assert body == pytest.approx(share[:2, :2] @ [0.05, 0.05], abs=0.005)

@@ -210,3 +210,34 @@ def test_log_odometry_carries_the_robots_odometry_to_the_laser():
     assert log_odometry(centred)[1] is None
     with pytest.raises(ValueError, match="no poses"):
         log_odometry([SimpleNamespace(pose_ref=None, pose_odom=None)])
+
+
+def test_step_calibration_from_matched_steps():
+    # the odometry 2 % long with 0.5 deg/m of drift; half the steps are corridor steps that
+    # the scans fix only across (along, the match is the prediction with the old calibration),
+    # and three matches are wrong by half a metre
+    from cgamap.mapping.odometry import step_calibration
+
+    rng = np.random.default_rng(3)
+    k = 200
+    scale, drift = 1 / 1.02, np.deg2rad(0.5)
+    d = rng.uniform(0.3, 1.5, k)
+    heading = rng.normal(0.0, 0.3, k)
+    raw = np.column_stack([d * np.cos(heading), d * np.sin(heading), rng.normal(0, 0.3, k)])
+    z = np.column_stack([scale * raw[:, :2], raw[:, 2] - drift * d])
+    z[:, :2] += rng.normal(0.0, 0.01, (k, 2))
+    z[:, 2] += rng.normal(0.0, 0.003, k)
+    info = np.tile(np.diag([1e4, 1e4, 1e5]), (k, 1, 1))
+    corridor = np.arange(k) % 2 == 1
+    z[corridor, :2] = raw[corridor, :2]            # along: what the old calibration said
+    info[corridor] = np.diag([1e-2, 1e4, 1e5])     # known across only (frame x = along)
+    z[corridor, 1] = scale * raw[corridor, 1]
+    z[[10, 50, 90], 0] += 0.5
+    got_scale, got_drift, used = step_calibration(z, info, raw)
+    assert used == np.count_nonzero(d >= 0.2)
+    assert got_scale == pytest.approx(scale, abs=0.002)
+    assert got_drift == pytest.approx(drift, abs=np.deg2rad(0.03))
+    # the ratio of lengths, as an online average takes it, is pulled to the old 1.0
+    naive = np.median(np.hypot(z[:, 0], z[:, 1]) / d)
+    assert abs(naive - scale) > 0.005
+    assert step_calibration(z[:10], info[:10], raw[:10]) is None  # too few steps
