@@ -78,6 +78,14 @@ class RelocParams:
     fit_weight: float = 100.0         # ranking = score + fit_weight * fit: by the soft fit,
     # which tells the tighter of two symmetric places apart (the inlier count only breaks ties)
     endpoint_lines: int = 1           # scan lines whose end points propose corridor positions
+    # ... and this many in a corridor-like scan: under ``corridor_share`` of its segments'
+    # length crosses its longest line by ``min_pair_angle_deg`` or more, so few line pairs
+    # fix the position along it, and a wall piece's end at a door recess is what does.
+    # Simulated 150 m corridor (100 trials against the map's trajectory): success 0.73 ->
+    # 0.88, the right pose among the first three 0.74 -> 0.96; Intel: 15 % of its scans
+    # are such, success 0.98 either way, median 31 ms either way (44 ms with 6 for all)
+    corridor_share: float = 0.2
+    corridor_endpoint_lines: int = 6
     crossing_weight: float = 0.0      # score = inlier fraction - this * crossing fraction
     crossing_step: float = 0.08       # free-space samples along each beam (m)
     map_share: float = 0.5            # a map line pairs with a scan line at least this long
@@ -314,6 +322,18 @@ def rivals(hypotheses: list[Hypothesis], best: Hypothesis, margin: float,
     return out
 
 
+def crossing_share(seg: Segments, min_angle_deg: float) -> float:
+    """Share of a scan's segment length at ``min_angle_deg`` or more from its longest
+    segment's direction: ~0 in a corridor (its walls, a few jambs), 0.3-0.5 in a room."""
+    L = seg.length
+    if not len(L) or L.sum() <= 0:
+        return 0.0
+    d = seg.b - seg.a
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    off = np.abs(_wrap(2 * (phi - phi[np.argmax(L)]))) / 2  # lines: modulo pi
+    return float(L[off >= np.deg2rad(min_angle_deg)].sum() / L.sum())
+
+
 def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
                params: RelocParams | None = None) -> RelocResult:
     """Pose of the laser in the map from one scan's segments (laser frame) and points."""
@@ -324,6 +344,8 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if len(seg) < min_seg or len(lmap) < 2 or len(seg.points) < 5:
         return RelocResult(False, None, 0.0, [])
     order = np.argsort(-seg.length)[: P.max_scan_lines]
+    n_end = (P.corridor_endpoint_lines if crossing_share(seg, P.min_pair_angle_deg)
+             < P.corridor_share else P.endpoint_lines)
     sa, sb = seg.a[order], seg.b[order]
     len_l = np.linalg.norm(sb - sa, axis=-1)
     len_g = lmap.length
@@ -391,7 +413,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             # the longest scan lines with each end of the map segments they may lie on.
             # Always tried: a short cross piece that would fix it is often missing.
             Tf, Df = [], []
-            for i1 in range(min(P.endpoint_lines, k)):
+            for i1 in range(min(n_end, k)):
                 g = np.nonzero(pair[:, i1])[0]
                 if not len(g):
                     continue

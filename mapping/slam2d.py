@@ -172,7 +172,8 @@ class MapperParams:
     loop: LoopParams = field(default_factory=LoopParams)
     neighbours: NeighbourParams = field(default_factory=NeighbourParams)
     reloc: RelocParams = field(default_factory=lambda: RelocParams(
-        min_score=0.6, refine=4, endpoint_lines=0, fit_weight=0.0, sweep_cells=0))
+        min_score=0.6, refine=4, endpoint_lines=0, corridor_endpoint_lines=0, fit_weight=0.0,
+        sweep_cells=0))
     # loop closures: no corridor guesses, no sweep (the submap is small, the guess close)
     mount: tuple[float, float, float] | None = None  # laser pose in the base frame (M_BL)
     seq_sigma: tuple[float, float] = (0.03, 0.008)   # matched step: (m, rad)

@@ -145,6 +145,7 @@ def test_cli_build_and_relocalize(short_log, tmp_path, capsys):
     for k in ("trials", "successes", "success_rate", "median_ms", "p95_ms"):
         assert k in res
     assert res["trials"] == 20 and res["success_rate"] >= 0.6  # measured 0.8
+    assert res["success_rate"] <= res["top3_rate"] <= 1.0  # the right pose among the first 3
 
 
 def test_cli_build_says_what_it_does_after_the_scans(short_log, tmp_path, capsys):

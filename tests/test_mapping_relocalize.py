@@ -101,3 +101,40 @@ def test_sweep_proposes_the_true_cell():
     T, R = _sweep(DistanceField(m, P.field_resolution), seg.points, np.array([p[2]]), P)
     assert len(T) == P.sweep_cells and np.allclose(R, p[2])
     assert np.min(np.hypot(*(T - p[:2]).T)) <= 0.71 * P.sweep_grid + 0.05
+
+
+def test_crossing_share_tells_a_corridor_from_a_room():
+    from cgamap.mapping.relocalize import crossing_share
+
+    corridor = world([(-10, -1, 10, -1), (-10, 1, 10, 1), (2, 1, 2, 1.3), (3, 1, 3, 1.3)])
+    room = world([(-4, -2, 4, -2), (4, -2, 4, 2), (4, 2, -4, 2), (-4, 2, -4, -2)])
+    c = crossing_share(segments_from_scan(scan(corridor, (0.0, 0.0, 0.2))), 30.0)
+    r = crossing_share(segments_from_scan(scan(room, (1.0, 0.5, 0.3), n=720,
+                                               fov=2 * np.pi)), 30.0)
+    assert c < 0.1 < 0.3 < r
+
+
+def test_along_a_corridor_the_wall_pieces_ends_place_the_scan():
+    # the simulated 150 m corridor, door recesses at irregular spacing: few line pairs
+    # cross, and the position along it comes from where the wall pieces end (measured: 20
+    # of 20 with the corridor's six end-point lines, 15 of 20 with one)
+    w = get_world("long_corridor")
+    t = np.linspace(0, 0.5 * w.path_length / w.speed, 120, endpoint=False)
+    poses = np.column_stack(w.trajectory(t))
+    m = scanned_map(w, poses)
+    field = DistanceField(m)
+    picks = np.random.default_rng(2).choice(len(poses) - 1, 20, replace=False)
+
+    def successes(P: RelocParams) -> int:
+        ok = 0
+        for i in picks:
+            p = 0.5 * (poses[i] + poses[i + 1])
+            r = relocalize(m, segments_from_scan(scan(w, p, n=180, sigma=0.01, seed=int(i))),
+                           field, P)
+            ok += bool(r.found and np.hypot(*(r.pose[:2] - p[:2])) < 0.2
+                       and abs(wrap(r.pose[2] - p[2])) < np.deg2rad(3))
+        return ok
+
+    with_ends, without = successes(RelocParams()), successes(RelocParams(corridor_share=0.0))
+    print("corridor relocalisation:", with_ends, "vs", without, "of", len(picks))
+    assert with_ends >= 18 and with_ends > without
