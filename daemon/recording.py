@@ -8,6 +8,7 @@ and what replay needs to rebuild the message exactly under ``cgamap`` (seq, stam
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,6 +16,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 from cgamap.drivers.messages import LaserScan, OdometryPose, PanTiltState, WheelTicks
+
+log = logging.getLogger(__name__)
 
 TOPICS = {  # message type -> (topic, schema name)
     LaserScan: ("/scan", "foxglove.LaserScan"),
@@ -168,6 +171,16 @@ def read_messages(path: str | Path) -> Iterator[Any]:
     if is_mcap(path):
         yield from read_mcap(path)
         return
-    from cgamap.drivers.carmen import read_carmen
+    from cgamap.drivers.carmen import drop_saturated, read_carmen, saturation_range
 
-    yield from read_carmen(path, lenient=True)
+    # a no-return value the log keeps as a reading (an LMS's 8 m mode): found in a first
+    # pass over the scans, dropped as ``map build`` drops it
+    limit = saturation_range(m for m in read_carmen(path, lenient=True,
+                                                    types=("FLASER", "ROBOTLASER1")))
+    if limit is not None:
+        log.info("replay: readings of %g m (the log's longest, repeated) taken as no return",
+                 limit)
+    for msg in read_carmen(path, lenient=True):
+        if limit is not None and isinstance(msg, LaserScan) and msg.frame == "laser":
+            drop_saturated(msg, limit)
+        yield msg

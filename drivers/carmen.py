@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import gzip
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -190,22 +190,18 @@ def read_scans(path: str | Path, *, lenient: bool = False,
         limit = saturation_range(scans)
         if limit is not None:
             st.saturated_range = limit
-            for s in scans:
-                hit = s.ranges >= limit - SATURATION_TOL
-                st.saturated_beams += int(hit.sum())
-                s.ranges[hit] = np.nan
-                s.range_max = min(s.range_max, limit)
+            st.saturated_beams = sum(drop_saturated(s, limit) for s in scans)
     return scans
 
 
 SATURATION_TOL = 0.0051  # readings this close below the top count as it (cm-rounded logs)
 
 
-def saturation_range(scans: list[LaserScan], min_share: float = 0.002, min_count: int = 20,
-                     min_scans: int = 10) -> float | None:
+def saturation_range(scans: Iterable[LaserScan], min_share: float = 0.002,
+                     min_count: int = 20, min_scans: int = 10) -> float | None:
     """The reading a log's sensor gives for "no return", when the logger kept it as a range:
     the largest reading, if at least ``min_share`` of all beams (and ``min_count``) sit at it
-    in a log of ``min_scans`` or more.
+    in a log of ``min_scans`` or more.  One pass over ``scans`` (a list or a stream).
 
     A SICK LMS in its 8 m mode reports 8.18 m, and some loggers keep such values (or clip to
     their own maximum) where others write 81.83 or 0.  Taken as points, they draw an arc
@@ -213,17 +209,30 @@ def saturation_range(scans: list[LaserScan], min_share: float = 0.002, min_count
     walls that match every scan wherever it is.  Real surfaces do not repeat the log's
     maximum to the centimetre: on the Intel log it occurs once in 163 800 beams.
     None when no reading repeats like that."""
-    if len(scans) < min_scans:
-        return None  # a handful of scans (a test, a snippet) shows no pattern
-    r = np.concatenate([s.ranges[np.isfinite(s.ranges)] for s in scans])
-    if not len(r):
-        return None
-    top = float(r.max())
-    at_top = int(np.count_nonzero(r >= top - SATURATION_TOL))
-    if (at_top < max(min_count, min_share * sum(len(s.ranges) for s in scans))
-            or len(r) - at_top < min_count):  # and real readings besides
+    top, at_top, beams, finite, n = -math.inf, 0, 0, 0, 0
+    for s in scans:
+        r = s.ranges[np.isfinite(s.ranges)]
+        n, beams, finite = n + 1, beams + len(s.ranges), finite + len(r)
+        if not len(r):
+            continue
+        m = float(r.max())
+        if m > top + SATURATION_TOL:  # a new top: what sat at the old one was readings
+            top, at_top = m, 0
+        top = max(top, m)
+        at_top += int(np.count_nonzero(r >= top - SATURATION_TOL))
+    if (n < min_scans  # a handful of scans (a test, a snippet) shows no pattern
+            or at_top < max(min_count, min_share * beams)
+            or finite - at_top < min_count):  # and real readings besides
         return None
     return top
+
+
+def drop_saturated(scan: LaserScan, limit: float) -> int:
+    """Readings of ``scan`` at the saturation value ``limit`` to NaN (in place); how many."""
+    hit = scan.ranges >= limit - SATURATION_TOL
+    scan.ranges[hit] = np.nan
+    scan.range_max = min(scan.range_max, limit)
+    return int(hit.sum())
 
 
 # Written for "no return": the 80 m mode's saturation value, which readers treat as such.

@@ -260,6 +260,28 @@ def test_replay_mount_is_what_the_log_states(tmp_path):
     assert "x 0.250 m, y -0.050 m, yaw 1.72 deg" in mount_note({"devices": {}}, mount)
 
 
+def test_replay_drops_a_no_return_the_log_keeps_as_a_reading(tmp_path, caplog):
+    # as `map build` does (an LMS's 8 m mode logs "nothing within 8 m" as 8.18 m)
+    import logging
+
+    from cgamap.daemon.recording import read_messages
+    from cgamap.drivers.carmen import write_carmen
+    from cgamap.drivers.messages import LaserScan
+    from cgamap.drivers.sim.scanlog import simulated_scans
+
+    scans = simulated_scans(get_world("loop"), laps=0.3)
+    for s in scans:
+        s.ranges = np.where(np.isnan(s.ranges) | (s.ranges > 8.18), 8.18, s.ranges)
+    write_carmen(tmp_path / "lms8m.log", scans)
+    with caplog.at_level(logging.INFO, logger="cgamap.daemon.recording"):
+        got = [m for m in read_messages(tmp_path / "lms8m.log") if isinstance(m, LaserScan)]
+    assert "readings of 8.18 m" in caplog.text
+    assert len(got) == len(scans)
+    assert all(np.nanmax(m.ranges) < 8.17 for m in got)
+    assert sum(np.isnan(m.ranges).sum() for m in got) == sum((s.ranges >= 8.18).sum()
+                                                             for s in scans)
+
+
 def test_replay_of_a_log_with_the_laser_off_the_centre(tmp_path):
     """cgamapd --replay of a ROBOTLASER1 log whose laser sits 25 cm ahead of the robot's
     centre, with a configuration that has no laser mount: the log's own mount is used (and
