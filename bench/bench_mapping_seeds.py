@@ -17,7 +17,7 @@ SEEDS = (0, 1, 2, 3)
 
 
 def run() -> dict:
-    from cgamap.mapping.evaluation import load_relations, relations_error
+    from cgamap.mapping.evaluation import affine_fit, load_relations, relations_error
     from cgamap.mapping.line_adjust import AdjustParams
     from cgamap.mapping.odometry import ODOM_NOISE_PRESETS, add_odometry_noise
     from cgamap.mapping.offline import build_map
@@ -31,15 +31,27 @@ def run() -> dict:
     keys = ("ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg", "ms_per_scan_median",
             "final_optimisation_ms", "loop_closures", "sweep_closures", "slips_recovered")
     out: dict = {"log": LOG, "odom_noise": "high", "seeds": {}}
+    ref = np.array([s.pose_ref for s in scans])
+
+    def affine(poses) -> dict:
+        # how much of the error is one linear distortion of the whole map (see README)
+        f = affine_fit(poses, ref)
+        return {"ate_affine_m": round(f["ate_affine_m"], 4),
+                "stretch": [round(v, 5) for v in f["stretch"]],
+                "stretch_axis_deg": round(f["stretch_axis_deg"], 1)}
+
     first = None
     for seed in SEEDS:
         res = build(seed)
-        out["seeds"][str(seed)] = {k: res.report[k] for k in keys}
+        out["seeds"][str(seed)] = {**{k: res.report[k] for k in keys},
+                                   "affine": affine(res.poses)}
         first = first or res
     ate = np.array([v["ate_trans_m"] for v in out["seeds"].values()])
     rot = np.array([v["ate_rot_deg"] for v in out["seeds"].values()])
     out["ate_trans_m"] = {"mean": round(float(ate.mean()), 4), "max": float(ate.max())}
     out["ate_rot_deg"] = {"mean": round(float(rot.mean()), 3), "max": float(rot.max())}
+    out["ate_affine_m"] = {"mean": round(float(np.mean(
+        [v["affine"]["ate_affine_m"] for v in out["seeds"].values()])), 4)}
     off = build_map(scans, add_odometry_noise(odo0, "high", SEEDS[0]),
                     MapperParams(neighbours=NeighbourParams(enabled=False)))
     out["seed0_without_neighbour_pass"] = {k: off.report[k] for k in keys}
@@ -57,10 +69,12 @@ def run() -> dict:
                                           drift_per_m=0.0),
               "rotation_only": replace(hi, trans_bias=0.0, trans_rel=0.0, trans_abs=0.0),
               "none": "none"}
-    out["seed0_error_budget"] = {
-        name: {k: build_map(scans, add_odometry_noise(odo0, noise, SEEDS[0])).report[k]
-               for k in ("ate_trans_m", "ate_rot_deg", "slips_recovered")}
-        for name, noise in budget.items()}
+    out["seed0_error_budget"] = {}
+    for name, noise in budget.items():
+        got = build_map(scans, add_odometry_noise(odo0, noise, SEEDS[0]))
+        out["seed0_error_budget"][name] = {
+            **{k: got.report[k] for k in ("ate_trans_m", "ate_rot_deg", "slips_recovered")},
+            "affine": affine(got.poses)}
     # the reference is SLAM output: which of estimate and reference follows the raw ranges
     out["icp_agreement_seed0"] = first.report["icp_agreement"]
     rel_path = data_dir() / RELATIONS

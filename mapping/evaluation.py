@@ -36,6 +36,21 @@ def ate(est: np.ndarray, ref: np.ndarray) -> dict:
             "ate_trans_max_m": float(dt.max())}
 
 
+def affine_fit(est: np.ndarray, ref: np.ndarray) -> dict:
+    """How much of the trajectory error a linear distortion explains: the RMS translation
+    error after the best affine map of est positions onto ref (``ate_affine_m``), and that
+    map's principal stretches (``stretch``: largest, smallest; 1 = none) with the direction
+    of the largest in ref's frame (``stretch_axis_deg``, 0-180).  A map that is right but for
+    a wheel-scale error has equal stretches; one whose corridors along x and along y came out
+    differently long has unequal ones, which a rigid alignment leaves in the ATE."""
+    pe, pr = est[:, :2] - est[:, :2].mean(0), ref[:, :2] - ref[:, :2].mean(0)
+    M, *_ = np.linalg.lstsq(pe, pr, rcond=None)     # pr ~ pe @ M
+    U, S, _ = np.linalg.svd(M.T)                     # ref-frame axes of the stretch
+    rms = float(np.sqrt(np.mean(np.sum((pe @ M - pr) ** 2, axis=-1))))
+    return {"ate_affine_m": rms, "stretch": [float(S[0]), float(S[1])],
+            "stretch_axis_deg": float(np.degrees(np.arctan2(U[1, 0], U[0, 0])) % 180.0)}
+
+
 def rpe(est: np.ndarray, ref: np.ndarray, distance: float = 1.0) -> dict:
     """Relative pose error over ``distance`` metres of (reference) travel: RMS of the
     difference between estimated and reference relative motions."""

@@ -305,3 +305,26 @@ def test_dense_scans_back_at_the_start_close_no_false_loop(seed):
     assert np.degrees(err[:, 2]).max() < 0.5
     X = m.poses
     assert np.hypot(*(X[:, :2] - truth[:, :2]).T).max() < 0.03
+
+
+def test_affine_fit_names_a_stretch():
+    # a square path stretched 0.5 % along 30 deg and shrunk 0.3 % across, then turned and
+    # moved: the fit finds both stretches and the axis; a rigid motion alone leaves none
+    from cgamap.mapping.evaluation import affine_fit, apply_pose
+
+    t = np.linspace(0.0, 4.0, 200, endpoint=False)
+    side = np.floor(t).astype(int)
+    u = t - side
+    corners = np.array([[0, 0], [20, 0], [20, 15], [0, 15], [0, 0]], float)
+    xy = corners[side] + u[:, None] * (corners[side + 1] - corners[side])
+    ref = np.column_stack([xy, np.zeros(len(xy))])
+    a = np.radians(30.0)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    D = R @ np.diag([1 / 1.005, 1 / 0.997]) @ R.T   # what the estimate got wrong
+    est = apply_pose((3.0, -1.0, 0.4), np.column_stack([xy @ D.T, np.zeros(len(xy))]))
+    got = affine_fit(est, ref)
+    assert got["ate_affine_m"] < 1e-9
+    assert got["stretch"] == pytest.approx([1.005, 0.997], abs=1e-6)
+    assert got["stretch_axis_deg"] == pytest.approx(30.0, abs=0.1)
+    rigid = affine_fit(apply_pose((1.0, 2.0, -0.3), ref), ref)
+    assert rigid["stretch"] == pytest.approx([1.0, 1.0], abs=1e-9)
