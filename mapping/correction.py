@@ -48,6 +48,14 @@ class CorrectionParams:
     # position (its direction keeps the weight of its own length; 0: off)
     min_length: float = 0.0
 
+    def prior_information(self, step) -> np.ndarray:
+        """The odometry prior's information (x, y, theta) after a step of ``step`` metres
+        (a scalar, or an array for a batch: (..., 3))."""
+        step = np.asarray(step, dtype=float)
+        st = self.prior_trans + self.prior_trans_per_m * step
+        sr = self.prior_rot + self.prior_rot_per_m * step
+        return np.stack([st ** -2, st ** -2, sr ** -2], -1)
+
 
 @dataclass
 class Correction:
@@ -103,9 +111,7 @@ def correct_batch(seg_a: np.ndarray, seg_b: np.ndarray, index: LineIndex, predic
     pred = np.ascontiguousarray(predicted, dtype=float)
     n_pairs = len(pred)
     step = np.full(n_pairs, step, dtype=float) if np.isscalar(step) else np.asarray(step, float)
-    st = params.prior_trans + params.prior_trans_per_m * step
-    sr = params.prior_rot + params.prior_rot_per_m * step
-    w_prior = np.ascontiguousarray(np.stack([st ** -2, st ** -2, sr ** -2], -1))
+    w_prior = np.ascontiguousarray(params.prior_information(step))
     f = np.ascontiguousarray
     x, H, info, matches, rms, matched = _gauss_newton(
         f(seg_a, dtype=float), f(seg_b, dtype=float), f(index.centre, dtype=float),
@@ -254,9 +260,7 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
     pred = np.asarray(predicted, dtype=float)
     k = len(seg_l)
     L = seg_l.length
-    st = params.prior_trans + params.prior_trans_per_m * step
-    sr = params.prior_rot + params.prior_rot_per_m * step
-    prior_cov = np.diag([st ** 2, st ** 2, sr ** 2])
+    prior_cov = np.diag(1.0 / params.prior_information(step))
     unmatched = Correction(pred.copy(), prior_cov, 0.0, float(L.sum()), 0.0, np.full(k, -1))
     if k == 0 or len(map_a) == 0:
         return unmatched

@@ -912,9 +912,7 @@ def prediction_share(cov: np.ndarray, params: CorrectionParams, step: float,
     frame of the pose it was predicted from (3, 3): the posterior covariance times the
     odometry prior's information, (I - K) of a Kalman update.  Along a corridor ~1 (the
     pose is the prediction), across it ~0 (the walls placed it)."""
-    st = params.prior_trans + params.prior_trans_per_m * step
-    sr = params.prior_rot + params.prior_rot_per_m * step
-    share = cov * np.array([st ** -2, st ** -2, sr ** -2])  # cov @ diag(prior information)
+    share = cov * params.prior_information(step)  # cov @ diag(prior information)
     c, s = np.cos(heading), np.sin(heading)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return R.T @ share @ R
