@@ -55,4 +55,10 @@ def warm_up() -> float:
     dedupe(lmap)
     correct_pose(seg, lmap.a, lmap.b, np.array([0.02, -0.01, 0.01]), 0.1)
     tls_from_moments(seg.n, seg.centroid, seg.scatter)
+    # relocalisation's line-pair solve (a trial or the daemon's first relocalisation must
+    # not pay for its compilation)
+    from .relocalize import _pair_translations
+    one = np.ones((1, 2))
+    _pair_translations(one, one, *(np.ones(1),) * 2, one, *(np.ones(1),) * 2, one,
+                       *(np.ones(1),) * 4, 1.0, 1.0)
     return time.perf_counter() - t0

@@ -138,3 +138,38 @@ def test_along_a_corridor_the_wall_pieces_ends_place_the_scan():
     with_ends, without = successes(RelocParams()), successes(RelocParams(corridor_share=0.0))
     print("corridor relocalisation:", with_ends, "vs", without, "of", len(picks))
     assert with_ends >= 18 and with_ends > without
+
+
+def test_line_pair_translations_are_every_pair_that_fits():
+    # the compiled solve against the same computation over the whole (n1, n2) grid in numpy,
+    # in the same order (row-major), with more fits than its first buffer holds
+    from cgamap.mapping.relocalize import _on_segment, _pair_translations
+
+    rng = np.random.default_rng(5)
+    for n1, n2, span in ((40, 30, 10.0), (150, 120, 1.0)):
+        ga, gb = rng.uniform(-span, span, (n1, 2)), rng.uniform(-span, span, (n1, 2))
+        ha, hb = rng.uniform(-span, span, (n2, 2)), rng.uniform(-span, span, (n2, 2))
+        A1 = np.column_stack([-(gb - ga)[:, 1], (gb - ga)[:, 0]])
+        A1 /= np.linalg.norm(A1, axis=1)[:, None]
+        A2 = np.column_stack([-(hb - ha)[:, 1], (hb - ha)[:, 0]])
+        A2 /= np.linalg.norm(A2, axis=1)[:, None]
+        d1, d2 = np.sum(A1 * ga, 1), np.sum(A2 * ha, 1)
+        la, lb, ma, mb = (rng.uniform(-0.5, 0.5, 2) for _ in range(4))
+        u1, lo1, hi1 = _on_segment(ga, gb, la, lb, 0.3)
+        u2, lo2, hi2 = _on_segment(ha, hb, ma, mb, 0.3)
+        e1, e2 = rng.normal(size=n1), rng.normal(size=n2)
+        T, D = _pair_translations(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, e1, e2, 2.0, 1.0)
+        det = A1[:, None, 0] * A2[None, :, 1] - A1[:, None, 1] * A2[None, :, 0]
+        ok = np.abs(det) > 0.3
+        det = np.where(ok, det, 1.0)
+        tx = (d1[:, None] * A2[None, :, 1] - A1[:, None, 1] * d2[None, :]) / det
+        ty = (A1[:, None, 0] * d2[None, :] - d1[:, None] * A2[None, :, 0]) / det
+        t1 = tx * u1[:, None, 0] + ty * u1[:, None, 1]
+        t2 = tx * u2[None, :, 0] + ty * u2[None, :, 1]
+        good = (ok & (lo1[:, None] < t1) & (t1 < hi1[:, None]) & (lo2[None] < t2)
+                & (t2 < hi2[None]))
+        assert good.any()
+        assert np.allclose(T, np.column_stack([tx[good], ty[good]]), rtol=0, atol=1e-12)
+        want_d = (2.0 * e1[:, None] + 1.0 * e2[None, :]) / 3.0
+        assert np.allclose(D, want_d[good], rtol=0, atol=1e-12)
+    assert len(T) > 4096  # the second case overflowed the first buffer
