@@ -220,11 +220,13 @@ class Mapper:
         self.last_loop = -10 ** 9
         # odometry distance from the start, per node (an array: each scan searches it)
         self.travel = Column((), float)
-        # per node: its raw odometry step (x, y, theta) and the calibration (scale, drift)
-        # it was predicted with, which the finishing pass re-estimates (:func:`_recalibrate`)
-        self.odo_step = Column((5,), float)
-        # ... and how much of its prediction its pose kept (:func:`prediction_share`)
-        self.odo_share = Column((3, 3), float)
+        # per node: its raw odometry step (x, y, theta), the calibration (scale, drift) it
+        # was predicted with, which the finishing pass re-estimates (:func:`_recalibrate`),
+        # the step's length for the prior and the heading it was predicted from ...
+        self.odo_step = Column((7,), float)
+        # ... and the corrected pose's covariance: with those, how much of its prediction
+        # the pose kept (:func:`prediction_shares`, once per pass, not per scan)
+        self.odo_cov = Column((3, 3), float)
         self.calibration: dict = {}  # the last finishing pass's estimate
         self.calib_n = 0
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
@@ -290,22 +292,22 @@ class Mapper:
             if i and i not in self.anchors:
                 self.anchors.append(i)
             self.travel.append(self.travel[-1] if len(self.travel) else 0.0)
-            self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m))
-            self.odo_share.append(np.zeros((3, 3)))
+            self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m, 0.0, 0.0))
+            self.odo_cov.append(np.zeros((3, 3)))
             self.last_odom = odom_l
             self._merge(seg, i, None)
             return StepResult(pose, len(seg), None)
         raw = relative(self.last_odom, odom_l)
         self.last_odom = odom_l
         d_odo = float(np.hypot(raw[0], raw[1]))
-        self.odo_step.append((*raw, self.scale, self.drift_per_m))
+        scale, drift = self.scale, self.drift_per_m
         inc = np.array([raw[0] * self.scale, raw[1] * self.scale,
                         raw[2] - self.drift_per_m * d_odo])
         prev = self.graph.poses[-1]
         pred = compose(prev, inc)
         step = float(d_odo + 0.3 * abs(inc[2]))
         pose = pred
-        share = np.eye(3)
+        cov = None  # no correction: the pose is the prediction
         if len(self.map) and len(seg):
             corr = correct_pose(seg, self.map.a, self.map.b, pred, step, P.correction)
             slipped = None
@@ -317,8 +319,7 @@ class Mapper:
                     self.slips += 1
             pose = corr.pose
             # a slip's pose owes nothing to the prediction
-            share = (np.zeros((3, 3)) if slipped is not None else
-                     prediction_share(corr.cov, P.correction, step, prev[2]))
+            cov = np.zeros((3, 3)) if slipped is not None else corr.cov
             if (slipped is None and corr.matched_fraction >= P.calib_min_fraction
                     and d_odo > 0.2):
                 got = relative(prev, pose)
@@ -328,7 +329,9 @@ class Mapper:
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
         self.travel.append(self.travel[-1] + d_odo)
-        self.odo_share.append(share)
+        self.odo_step.append((*raw, scale, drift, step, prev[2]))
+        self.odo_cov.append(cov if cov is not None else
+                            np.diag(1.0 / P.correction.prior_information(step)))
         if corr is not None and corr.matched_fraction > 0.3:
             st, sr = P.seq_sigma
             if P.seq_from_cov:
@@ -388,8 +391,8 @@ class Mapper:
             setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = Column((), float, self.travel[cut:])
-        self.odo_step = Column((5,), float, self.odo_step[cut:])
-        self.odo_share = Column((3, 3), float, self.odo_share[cut:])
+        self.odo_step = Column((7,), float, self.odo_step[cut:])
+        self.odo_cov = Column((3, 3), float, self.odo_cov[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
         # edge numbers of the neighbour block shift with the edges dropped before them
         n0, n1 = self._neighbour_block
@@ -623,8 +626,9 @@ class Mapper:
                          list(self.anchors), self.dropped, self._neighbour_block,
                          self._weighted, LP if do_sweep else None,
                          np.array(self.travel, float), source=self,
-                         steps=self.odo_step.array().copy(),
-                         shares=self.odo_share.array().copy(),
+                         steps=self.odo_step.array()[:, :5].copy(),
+                         shares=prediction_shares(self.odo_cov.array(), self.params.correction,
+                                                  self.odo_step[:, 5], self.odo_step[:, 6]),
                          lines=Contributions.of(self.map) if AP.enabled else None,
                          adjust=AP if AP.enabled else None)
 
@@ -906,16 +910,18 @@ def calibration_figures(cal: dict) -> dict:
             "steps": int(cal["steps"])}
 
 
-def prediction_share(cov: np.ndarray, params: CorrectionParams, step: float,
-                     heading: float) -> np.ndarray:
-    """How much of a change in its prediction a corrected pose would have followed, in the
-    frame of the pose it was predicted from (3, 3): the posterior covariance times the
-    odometry prior's information, (I - K) of a Kalman update.  Along a corridor ~1 (the
-    pose is the prediction), across it ~0 (the walls placed it)."""
-    share = cov * params.prior_information(step)  # cov @ diag(prior information)
+def prediction_shares(cov: np.ndarray, params: CorrectionParams, step: np.ndarray,
+                      heading: np.ndarray) -> np.ndarray:
+    """How much of a change in its prediction each corrected pose would have followed, in
+    the frame of the pose it was predicted from (k, 3, 3): the posterior covariance ``cov``
+    (k, 3, 3, global frame) times the odometry prior's information after ``step`` metres,
+    (I - K) of a Kalman update.  Along a corridor ~1 (the pose is the prediction), across it
+    ~0 (the walls placed it); the prior's own covariance gives I, a zero one 0."""
+    share = cov * params.prior_information(step)[:, None, :]  # cov @ diag(information)
     c, s = np.cos(heading), np.sin(heading)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return R.T @ share @ R
+    R = np.zeros((len(c), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return np.einsum("kba,kbc,kcd->kad", R, share, R)
 
 
 def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams,

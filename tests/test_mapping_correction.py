@@ -328,7 +328,7 @@ def test_prediction_share_follows_what_the_walls_leave_open(heading):
     # a corridor along the robot's heading: a change in the prediction along it stays in
     # the pose (share 1), across it the walls hold (share ~0); the share is in the frame of
     # the pose predicted from, so turning the whole scene does not change it
-    from cgamap.mapping.slam2d import prediction_share
+    from cgamap.mapping.slam2d import prediction_shares
 
     c_, s_ = np.cos(heading), np.sin(heading)
     walls = [(-10, -1, 10, -1), (-10, 1, 10, 1)]
@@ -342,7 +342,7 @@ def test_prediction_share_follows_what_the_walls_leave_open(heading):
                          heading])
         c = correct_pose(seg, turned[:, :2], turned[:, 2:], pred, step=1.0, params=P)
         moved.append(c.pose)
-    share = prediction_share(c.cov, P, 1.0, heading)
+    share = prediction_shares(c.cov[None], P, np.array([1.0]), np.array([heading]))[0]
     assert share[0, 0] == pytest.approx(1.0, abs=0.02)
     assert abs(share[1, 1]) < 0.2  # the correction's information is modest by design
     # what the pose did when the prediction moved 5 cm along and across: the share's answer
