@@ -115,9 +115,6 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
     return BuildResult(mapper.map, poses, stamps, report)
 
 
-TOP = 3  # hypotheses counted by relocalize_trials' ``top3_rate``
-
-
 def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0,
                       params: RelocParams | None = None,
                       segment_params: SegmentParams | None = None,
@@ -151,7 +148,7 @@ def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0
         cpu.append(time.process_time() - tc)
         if res.found:
             found += 1
-            ranked = np.array([h.pose for h in res.hypotheses[:TOP]])
+            ranked = np.array([h.pose for h in res.hypotheses[:3]])
             if alignment is not None:
                 ranked = apply_pose(alignment, ranked)
             d = ranked - truth[int(i)]
@@ -170,9 +167,9 @@ def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0
         "trials": int(trials),
         "successes": succ,
         "success_rate": round(succ / trials, 4) if trials else 0.0,
-        # the right pose among the first TOP hypotheses: in a symmetric place (a ring of
+        # the right pose among the first 3 hypotheses: in a symmetric place (a ring of
         # like corridors) the best one alone cannot know which of them it is
-        f"top{TOP}_rate": round(in_top / trials, 4) if trials else 0.0,
+        "top3_rate": round(in_top / trials, 4) if trials else 0.0,
         "found": found,
         "median_ms": round(med, 2),
         "p95_ms": round(p95, 2),
