@@ -55,10 +55,11 @@ def warm_up() -> float:
     dedupe(lmap)
     correct_pose(seg, lmap.a, lmap.b, np.array([0.02, -0.01, 0.01]), 0.1)
     tls_from_moments(seg.n, seg.centroid, seg.scatter)
-    # relocalisation's line-pair solve (a trial or the daemon's first relocalisation must
-    # not pay for its compilation)
-    from .relocalize import _pair_translations
+    # relocalisation's line-pair solve and hypothesis score (a trial or the daemon's first
+    # relocalisation must not pay for their compilation)
+    from .relocalize import DistanceField, _pair_translations, _score
     one = np.ones((1, 2))
     _pair_translations(one, one, *(np.ones(1),) * 2, one, *(np.ones(1),) * 2, one,
                        *(np.ones(1),) * 4, 1.0, 1.0)
+    _score(DistanceField(lmap, 0.05), seg.points, np.zeros((1, 2)), np.zeros(1), 0.2)
     return time.perf_counter() - t0

@@ -370,36 +370,33 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         R = np.array([[c, -s], [s, c]])
         ra, rb = sa @ R.T, sb @ R.T
         n_l, c_l, phi_l = _line_params(ra, rb)
-        dphi = np.abs(_wrap(2 * (phi_g[:, None] - phi_l[None, :]))) / 2
-        pair = (dphi < tol) & (len_g[:, None] > P.map_share * len_l[None, :] - 0.3)
-        # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
-        sgn = np.sign(n_g @ n_l.T)
         # exact rotation residual of every pairing: each candidate gets the rotation its own
         # two line pairs say (the histogram peak is only good to a bin or so)
         delta = _wrap(2 * (phi_g[:, None] - phi_l[None, :])) / 2
+        pair = (np.abs(delta) < tol) & (len_g[:, None] > P.map_share * len_l[None, :] - 0.3)
+        # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
+        sgn = np.sign(n_g @ n_l.T)
         Ts, Ds = ([], []), ([], [])
         k = len(ra)
+        # per scan line: the map segments it may lie on, and (per sign) where along each the
+        # translation may fall for the scan segment to lie on the map segment, not only on
+        # its line; (2, n) right-hand sides: the rotation and its twin
+        on: dict = {}
+        for i in range(k):
+            g = np.nonzero(pair[:, i])[0]
+            if len(g):
+                on[i] = (g, c_g[g][None] - sig[:, None] * sgn[g, i][None] * c_l[i],
+                         [_on_segment(lmap.a[g], lmap.b[g], sig[t] * ra[i], sig[t] * rb[i],
+                                      P.overlap_slack) for t in (0, 1)])
         for i1 in range(k):          # loops over the few scan lines, not over points
             for i2 in range(i1 + 1, k):
                 ang = np.abs(_wrap(2 * (phi_l[i1] - phi_l[i2]))) / 2
-                if ang < np.deg2rad(P.min_pair_angle_deg):
+                if ang < np.deg2rad(P.min_pair_angle_deg) or i1 not in on or i2 not in on:
                     continue
-                g1, g2 = np.nonzero(pair[:, i1])[0], np.nonzero(pair[:, i2])[0]
-                if not len(g1) or not len(g2):
-                    continue
-                A1, A2 = n_g[g1], n_g[g2]
-                # (2, n): the rotation and its twin
-                d1 = c_g[g1][None] - sig[:, None] * sgn[g1, i1][None] * c_l[i1]
-                d2 = c_g[g2][None] - sig[:, None] * sgn[g2, i2][None] * c_l[i2]
+                (g1, d1, ov1), (g2, d2, ov2) = on[i1], on[i2]
                 for t in (0, 1):
-                    # both scan segments must lie on their map segments, not only on the
-                    # lines: where along each map line the translation may fall
-                    u1, lo1, hi1 = _on_segment(lmap.a[g1], lmap.b[g1], sig[t] * ra[i1],
-                                               sig[t] * rb[i1], P.overlap_slack)
-                    u2, lo2, hi2 = _on_segment(lmap.a[g2], lmap.b[g2], sig[t] * ra[i2],
-                                               sig[t] * rb[i2], P.overlap_slack)
-                    T, D = _pair_translations(A1, A2, d1[t], d2[t], u1, lo1, hi1, u2, lo2,
-                                              hi2, delta[g1, i1], delta[g2, i2],
+                    T, D = _pair_translations(n_g[g1], n_g[g2], d1[t], d2[t], *ov1[t],
+                                              *ov2[t], delta[g1, i1], delta[g2, i2],
                                               len_l[i1], len_l[i2])
                     Ts[t].append(T)
                     Ds[t].append(D)
@@ -433,15 +430,16 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             T, D, cell = T[inside], D[inside], cell[inside]
             if not len(T):
                 continue
-            flat = cell[:, 0] * gshape[1] + cell[:, 1]
-            votes = np.bincount(flat, minlength=gshape[0] * gshape[1])
-            kk = min(P.translation_peaks, votes.size)
-            top = np.argpartition(-votes, kk - 1)[:kk]
-            top = top[votes[top] > 0]
+            # the occupied cells only (a big map's grid is mostly empty: a dense vote grid
+            # cost as much to fill and partition as everything else in a trial)
+            cells, which, votes = np.unique(cell[:, 0] * gshape[1] + cell[:, 1],
+                                            return_inverse=True, return_counts=True)
+            kk = min(P.translation_peaks, len(cells))
+            top = np.argpartition(-votes, kk - 1)[:kk] if kk < len(cells) else slice(None)
             # the hypothesis of a cell: mean of the intersections that fell in it
-            sums_x = np.bincount(flat, T[:, 0], votes.size)[top]
-            sums_y = np.bincount(flat, T[:, 1], votes.size)[top]
-            sums_d = np.bincount(flat, D, votes.size)[top]
+            sums_x = np.bincount(which, T[:, 0], len(cells))[top]
+            sums_y = np.bincount(which, T[:, 1], len(cells))[top]
+            sums_d = np.bincount(which, D, len(cells))[top]
             cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
             cand_R.append(th + sums_d / votes[top])
     if P.sweep_cells and len(rots):
@@ -842,12 +840,45 @@ def _on_segment(ga: np.ndarray, gb: np.ndarray, la: np.ndarray, lb: np.ndarray,
 def _pair_kernel(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2, w1, w2, out_T,
                  out_D):
     """:func:`_pair_translations`' loop: writes the pairs that fit into out_T, out_D as far
-    as they have room, and returns how many fit."""
+    as they have room, and returns how many fit.
+
+    A map segment admits the translations on a piece of its line, d n + s u for s in
+    (lo, hi): a pair can fit only where the two pieces' bounding boxes meet.  The second
+    pieces are sorted by their boxes' left edges, so each first piece reads the few whose
+    boxes can reach its own (sweep and prune) instead of all of them; those are then solved
+    in index order, so the output is the full double loop's, pair for pair."""
     room = out_T.shape[0]
+    eps = 1e-6  # the boxes are padded: the exact tests below decide
+    n2 = A2.shape[0]
+    bx0, bx1 = np.empty(n2), np.empty(n2)
+    by0, by1 = np.empty(n2), np.empty(n2)
+    for b in range(n2):
+        cx, cy = d2[b] * A2[b, 0], d2[b] * A2[b, 1]
+        x0, x1 = cx + lo2[b] * u2[b, 0], cx + hi2[b] * u2[b, 0]
+        y0, y1 = cy + lo2[b] * u2[b, 1], cy + hi2[b] * u2[b, 1]
+        bx0[b], bx1[b] = min(x0, x1) - eps, max(x0, x1) + eps
+        by0[b], by1[b] = min(y0, y1) - eps, max(y0, y1) + eps
+    order = np.argsort(bx0)
+    left = bx0[order]
+    width = np.max(bx1 - bx0) if n2 else 0.0
+    near = np.empty(n2, np.int64)
     n = 0
     for a in range(A1.shape[0]):
         a11, a12 = A1[a, 0], A1[a, 1]
-        for b in range(A2.shape[0]):
+        cx, cy = d1[a] * a11, d1[a] * a12
+        x0, x1 = cx + lo1[a] * u1[a, 0], cx + hi1[a] * u1[a, 0]
+        y0, y1 = cy + lo1[a] * u1[a, 1], cy + hi1[a] * u1[a, 1]
+        ax0, ax1 = min(x0, x1), max(x0, x1)
+        ay0, ay1 = min(y0, y1), max(y0, y1)
+        m = 0
+        j = np.searchsorted(left, ax0 - width)
+        while j < n2 and left[j] <= ax1:
+            b = order[j]
+            if bx1[b] >= ax0 and by0[b] <= ay1 and by1[b] >= ay0:
+                near[m] = b
+                m += 1
+            j += 1
+        for b in np.sort(near[:m]):
             a21, a22 = A2[b, 0], A2[b, 1]
             det = a11 * a22 - a12 * a21
             if abs(det) <= 0.3:
@@ -893,13 +924,37 @@ def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
     places go to the pose that fits tighter)."""
     if not len(pts):
         return np.zeros(len(T))
-    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-    gx = c * pts[None, :, 0] - s * pts[None, :, 1] + T[:, None, 0]
-    gy = s * pts[None, :, 0] + c * pts[None, :, 1] + T[:, None, 1]
-    d = field.lookup_xy(gx, gy)
-    if soft:
-        return np.mean(np.maximum(0.0, 1.0 - (d / inlier) ** 2), axis=-1)
-    return np.mean(d < inlier, axis=-1)
+    out = np.empty(len(T))
+    _score_kernel(field.dist, float(field.lo[0]), float(field.lo[1]), float(field.res),
+                  float(field.far), np.ascontiguousarray(pts, dtype=float),
+                  np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(th, dtype=float),
+                  float(inlier), bool(soft), out)
+    return out
+
+
+@kernel
+def _score_kernel(dist, lo0, lo1, res, far, pts, T, th, inlier, soft, out):
+    """:func:`_score` per hypothesis, the points moved, looked up (:meth:`DistanceField.
+    lookup_xy`, nearest cell, off-grid far) and counted in one pass: no (hypotheses x points)
+    temporaries, which on a large map's many candidates cost more than the lookups."""
+    ny, nx = dist.shape
+    n = pts.shape[0]
+    for h in range(T.shape[0]):
+        c, s = np.cos(th[h]), np.sin(th[h])
+        acc = 0.0
+        for j in range(n):
+            gx = c * pts[j, 0] - s * pts[j, 1] + T[h, 0]
+            gy = s * pts[j, 0] + c * pts[j, 1] + T[h, 1]
+            qx = np.floor((gx - lo0) / res + 0.5)
+            qy = np.floor((gy - lo1) / res + 0.5)
+            d = far
+            if qx >= 0 and qy >= 0 and qx < nx and qy < ny:
+                d = dist[int(qy), int(qx)]
+            if soft:
+                acc += max(0.0, 1.0 - (d / inlier) ** 2)
+            elif d < inlier:
+                acc += 1.0
+        out[h] = acc / n
 
 
 def inlier_fraction(points: np.ndarray, pose, a: np.ndarray, b: np.ndarray,
