@@ -58,6 +58,34 @@ def test_not_a_line_is_not_fused():
     assert len(m) == 2
 
 
+def test_a_wall_thickened_by_its_observations_still_takes_more():
+    # a wall seen from poses a few cm apart: its fused segment is 4.5 cm thick (RMS), past
+    # the 3 cm a fusion may add.  A later observation on its line is the same wall, not a
+    # copy beside it (the thickness is the wall's past, not what this fusion adds)
+    m = LineMap()
+    for k, y in enumerate((0.045, -0.045, 0.045, -0.045)):
+        integrate(m, _seg([0, y], [4, y]), k, MapParams(max_residual=0.08))
+    assert len(m) == 1 and np.sqrt(np.linalg.eigvalsh(m.scatter[0])[0] / m.n_pts[0]) > 0.04
+    for k in range(4, 10):
+        integrate(m, _seg([0.5, 0.0], [3.5, 0.0]), k)
+        assert len(m) == 1 and m.n_obs[0] == k + 1
+
+
+def test_a_chain_of_candidates_fuses_its_lines_not_its_neighbours():
+    # two pieces of one wall and a desk edge 6 cm in front of it, overlapping both: within
+    # the merge gates (0.10 m) every pair is a candidate, so all three form one component.
+    # The wall's pieces join; the desk, 6 cm off, stays apart (judged whole, the component
+    # was refused and the wall stayed in two pieces)
+    m = LineMap()
+    m.append(_seg([[0, 0], [2.1, 0], [1.0, 0.06]], [[2.0, 0], [4, 0], [3.0, 0.06]]), 0)
+    assert dedupe(m) == 1 and len(m) == 2
+    wall = int(np.argmax(m.length))
+    assert m.length[wall] == pytest.approx(4.0, abs=1e-6) and abs(m.a[wall, 1]) < 1e-9
+    # an observation along the desk joins the desk
+    integrate(m, _seg([1.2, 0.06], [2.8, 0.06]), 1)
+    assert len(m) == 2 and m.n_obs[1 - wall] == 2
+
+
 def test_age_out_and_dedupe():
     m = LineMap()
     integrate(m, _seg([0, 0], [4, 0]), 0)
