@@ -112,6 +112,7 @@ def test_sigkill_during_checkpointing(tmp_path, run_dir):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # 200 rounds take ~250 s alone, past the 300 s default when shared
 def test_sigkill_during_checkpointing_soak(tmp_path, run_dir):
     kill_daemon_rounds(tmp_path, run_dir, int(os.environ.get("CGAMAP_SOAK_KILLS", "200")),
                        seed=int(os.environ.get("CGAMAP_SOAK_SEED", "11")))
