@@ -31,6 +31,11 @@ class MapParams:
     # rows), and with 15 cm segments some short piece goes nearly every scan.  Intel seeds
     # 0-3: 0.064 -> 0.061 m mean ATE, the scans' median time down by about a tenth
     age_every: int = 4
+    # ... and at most once per this many contribution rows, in scans: a drop copies every
+    # row (the dropped segments' contributions go), and a long run holds hundreds of
+    # thousands (the Intel log driven 20 times: 3.3 ms per scan at 174 000 rows, most of it
+    # those copies).  Spread so, the copies cost a bounded share of each scan
+    age_rows: int = 10_000
     dedupe_every: int = 10
     dedupe_margin: float = 0.05    # sphere enlargement when fusing map segments with each other
     # a fusion must still be one line: two sets of observations join when the joint line

@@ -218,6 +218,7 @@ class Mapper:
         self.loops = 0
         self.optimizations = 0
         self.last_loop = -10 ** 9
+        self.last_aged = -10 ** 9  # the node the map's short segments were last judged at
         # odometry distance from the start, per node (an array: each scan searches it)
         self.travel = Column((), float)
         # per node: its raw odometry step (x, y, theta), the calibration (scale, drift) it
@@ -401,6 +402,7 @@ class Mapper:
         self.dropped += cut
         self.last_opt -= cut
         self.last_loop -= cut
+        self.last_aged -= cut
         return cut
 
     def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
@@ -410,8 +412,10 @@ class Mapper:
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
-        if node % P.map.age_every == 0:
+        if node - self.last_aged >= max(P.map.age_every,
+                                        len(self.map.c_seg) // P.map.age_rows):
             age_out(self.map, node, P.map)
+            self.last_aged = node
         if node % P.map.dedupe_every == 0:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)
 

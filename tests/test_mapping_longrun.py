@@ -49,3 +49,36 @@ def test_unbounded_run_is_unchanged_by_the_option():
     a = _run(max_nodes=0, laps=1)
     b = _run(max_nodes=10_000, laps=1)
     assert np.array_equal(a[1], b[1])
+
+
+def test_aging_is_spread_as_the_contributions_grow(monkeypatch):
+    """A drop copies every contribution row: with many rows, short segments are judged
+    less often (at most once per ``age_rows`` rows, in scans), never more often than
+    ``age_every``."""
+    import cgamap.mapping.slam2d as slam2d
+    from cgamap.mapping.linemap import MapParams
+
+    calls: list[tuple[int, int]] = []
+    real = slam2d.age_out
+
+    def counted(lmap, stamp, params=None):
+        calls.append((stamp, len(lmap.c_seg)))
+        return real(lmap, stamp, params)
+
+    monkeypatch.setattr(slam2d, "age_out", counted)
+    w = get_world("loop")
+    t = np.arange(0, w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    rows = 10
+    m = Mapper(MapperParams(map=MapParams(age_every=4, age_rows=rows),
+                            neighbours=NeighbourParams(enabled=False)), initial_pose=truth[0])
+    for k, p in enumerate(truth[:80]):
+        s = scan(w, p, n=180, sigma=0.01, seed=k)
+        m.step(s.ranges, s.angle_min, s.angle_increment, p)
+    stamps = np.array([c[0] for c in calls])
+    size = np.array([c[1] for c in calls])
+    gaps = np.diff(stamps)
+    assert len(calls) >= 3 and stamps[0] == 0 and np.all(gaps >= 4)
+    assert np.all(gaps[size[1:] < 5 * rows] == 4)     # few rows: every 4th scan, as before
+    # many rows: the next judgement waits a scan per ``rows`` rows
+    assert np.all(gaps >= size[1:] // rows) and np.any(gaps > 4)
