@@ -7,7 +7,8 @@ import json
 
 import numpy as np
 import pytest
-from cgamap.mapping.linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
+from cgamap.mapping.linemap import (LineMap, MapParams, age_out, copies, dedupe, integrate,
+                                    refresh)
 from cgamap.mapping.mapio import MapFormatError, load_map, map_to_json, save_map
 from cgamap.mapping.segments import Segments, segments_from_scan
 from synth2d import ROOM, scan, world
@@ -84,6 +85,17 @@ def test_a_chain_of_candidates_fuses_its_lines_not_its_neighbours():
     # an observation along the desk joins the desk
     integrate(m, _seg([1.2, 0.06], [2.8, 0.06]), 1)
     assert len(m) == 2 and m.n_obs[1 - wall] == 2
+
+
+def test_copies_are_overlapping_near_collinear_pairs():
+    a = np.array([[0, 0], [1, 0.02], [0, 1], [5, 0], [2, -0.05], [3, 0]], float)
+    b = np.array([[4, 0], [3, 0.02], [0, 3], [6, 0], [3, -0.05], [3, 1]], float)
+    # 0 and 1: one wall twice, 2 cm apart and overlapping; 2 and 5: perpendicular to it;
+    # 3: on its line but beyond its end; 4: 5 cm off
+    assert copies(a, b) == 2
+    assert copies(a, b, dist=0.06) == 3           # 4 joins: a copy of 0 within 6 cm
+    assert copies(a, b, chunk=2) == copies(a, b)  # chunked rows, same count
+    assert copies(a[[0, 2, 3]], b[[0, 2, 3]]) == 0
 
 
 def test_age_out_and_dedupe():

@@ -1,0 +1,52 @@
+"""The map and the scan time when the robot keeps coming back: the Intel log driven there
+and back (its scans in reverse on the way back) several times, through the mapper with the
+daemon's 20 000-node bound and the log's reference poses as odometry (what is measured is
+the map and the time, not the trajectory).  Per pass: median and p95 ms per scan, segments,
+segments with a copy within 3 cm (:func:`cgamap.mapping.linemap.copies`) and contribution
+rows; with 4 passes (the default), the finishing pass's map too.  ``CGAMAP_BENCH_LONG=1``
+drives 20 passes (18 200 scans, ~2 min) and skips the finishing pass."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from bench import intel
+
+
+def run() -> dict:
+    from cgamap.mapping.jit import warm_up
+    from cgamap.mapping.linemap import copies
+    from cgamap.mapping.slam2d import Mapper, MapperParams
+
+    if (skip := intel.missing()) is not None:
+        return skip
+    scans = intel.scans()
+    ref = np.array([s.pose_ref for s in scans])
+    long = os.environ.get("CGAMAP_BENCH_LONG") == "1"
+    passes = 20 if long else 4
+    warm_up()
+    m = Mapper(MapperParams(max_nodes=20_000), initial_pose=ref[0])
+    out: dict = {"passes": passes, "scans_per_pass": len(scans), "per_pass": []}
+    for p in range(passes):
+        order = range(len(scans)) if p % 2 == 0 else range(len(scans) - 1, -1, -1)
+        ms = []
+        for k in order:
+            s = scans[k]
+            t = time.perf_counter()
+            m.step(s.ranges, s.angle_min, s.angle_increment, ref[k])
+            ms.append((time.perf_counter() - t) * 1e3)
+        out["per_pass"].append({
+            "ms_per_scan_median": round(float(np.median(ms)), 3),
+            "ms_per_scan_mean": round(float(np.mean(ms)), 3),
+            "ms_per_scan_p95": round(float(np.percentile(ms, 95)), 2),
+            "segments": len(m.map), "copies_3cm": copies(m.map.a, m.map.b),
+            "contribution_rows": len(m.map.c_seg)})
+    if not long:
+        t = time.perf_counter()
+        m.finish()
+        out["finished"] = {"segments": len(m.map), "copies_3cm": copies(m.map.a, m.map.b),
+                           "finishing_pass_s": round(time.perf_counter() - t, 1)}
+    return out
