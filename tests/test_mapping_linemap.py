@@ -7,8 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from cgamap.mapping.linemap import (LineMap, MapParams, age_out, copies, dedupe, integrate,
-                                    refresh)
+from cgamap.mapping.linemap import LineMap, MapParams, age_out, copies, dedupe, integrate, refresh
 from cgamap.mapping.mapio import MapFormatError, load_map, map_to_json, save_map
 from cgamap.mapping.segments import Segments, segments_from_scan
 from synth2d import ROOM, scan, world
