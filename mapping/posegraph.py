@@ -35,10 +35,10 @@ CG_TOLERANCE = 1e-9
 
 def solve_normal(H: sp.spmatrix, b: np.ndarray, blocks: int) -> np.ndarray:
     """x with H x = b for symmetric positive definite normal equations whose first
-    ``blocks`` 3x3 diagonal blocks are poses (any unknowns after them are lines): factored
-    when small, else preconditioned conjugate gradients (block Jacobi), falling back to the
-    factor when CG does not converge (a long chain with few closures, which factors
-    cheaply)."""
+    ``blocks`` 3x3 diagonal blocks are poses and whose unknowns after them are lines, 2x2
+    blocks (phi, rho): factored when small, else preconditioned conjugate gradients (block
+    Jacobi), falling back to the factor when CG does not converge (a long chain with few
+    closures, which factors cheaply)."""
     if H.shape[0] <= DIRECT_MAX:
         return spsolve(H.tocsc(), b)
     A = H.tocsr()
@@ -46,21 +46,32 @@ def solve_normal(H: sp.spmatrix, b: np.ndarray, blocks: int) -> np.ndarray:
     return x if ok else spsolve(H.tocsc(), b)
 
 
-def _block_jacobi(A: sp.csr_matrix, blocks: int):
-    """The inverse of A's 3x3 pose blocks (and of its diagonal after them) as an operator."""
-    r = 3 * np.arange(blocks)
-    B = np.empty((blocks, 3, 3))
-    for a in range(3):
-        for c in range(3):
+def _diagonal_blocks(A: sp.csr_matrix, start: int, count: int, size: int) -> np.ndarray:
+    """A's ``count`` diagonal blocks of ``size`` x ``size`` from row ``start`` on."""
+    r = start + size * np.arange(count)
+    B = np.empty((count, size, size))
+    for a in range(size):
+        for c in range(size):
             B[:, a, c] = np.asarray(A[r + a, r + c]).ravel()
-    B += 1e-12 * np.eye(3)
-    Binv = np.linalg.pinv(B, hermitian=True)
-    tail = A.diagonal()[3 * blocks:]
-    tail_inv = 1.0 / np.where(tail > 0, tail, 1.0)
+    return B
+
+
+def _block_jacobi(A: sp.csr_matrix, blocks: int):
+    """The inverse of A's 3x3 pose blocks and of its 2x2 line blocks after them, as an
+    operator.  A line's (phi, rho) must be one block: for a wall 20 m from the origin a turn
+    of phi moves it by 20 m times the angle unless rho follows, and a diagonal preconditioner
+    left CG short of convergence after 1 500 steps on the Intel log driven four times
+    (3 640 poses, 800 lines; the factor then took 6 s a step), where the blocks converge in
+    about 0.4 s."""
+    Binv = np.linalg.pinv(_diagonal_blocks(A, 0, blocks, 3) + 1e-12 * np.eye(3),
+                          hermitian=True)
+    lines = (A.shape[0] - 3 * blocks) // 2
+    Linv = np.linalg.pinv(_diagonal_blocks(A, 3 * blocks, lines, 2), hermitian=True)
 
     def apply(v: np.ndarray) -> np.ndarray:
         head = np.einsum("kij,kj->ki", Binv, v[:3 * blocks].reshape(-1, 3)).ravel()
-        return np.concatenate([head, tail_inv * v[3 * blocks:]])
+        tail = np.einsum("kij,kj->ki", Linv, v[3 * blocks:].reshape(-1, 2)).ravel()
+        return np.concatenate([head, tail])
     return apply
 
 

@@ -257,6 +257,47 @@ def test_large_normal_equations_go_to_conjugate_gradients(monkeypatch, cg_iterat
     assert ate(np.array(g.poses), true)["ate_trans_m"] < 0.1
 
 
+def test_block_jacobi_inverts_pose_and_line_blocks():
+    """The preconditioner is the exact inverse of a block-diagonal matrix of 3x3 pose
+    blocks followed by 2x2 line blocks (phi, rho): a line far from the origin couples its
+    two unknowns strongly, and inverting only their diagonal left CG unconverged."""
+    import cgamap.mapping.posegraph as pg
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(2)
+    poses, lines = 5, 4
+    blocks = []
+    for size in [3] * poses + [2] * lines:
+        G = rng.normal(size=(size, size))
+        blocks.append(G @ G.T + 0.1 * np.eye(size))
+    # a wall 30 m out: rho follows phi by 30 m per radian
+    blocks[poses] = np.array([[900.0, 30.0], [30.0, 1.0]]) + 1e-3 * np.eye(2)
+    A = sp.block_diag(blocks, format="csr")
+    v = rng.normal(size=A.shape[0])
+    assert np.allclose(pg._block_jacobi(A, poses)(A @ v), v, rtol=1e-9, atol=1e-9)
+
+
+def test_line_adjustment_by_conjugate_gradients_matches_the_factor(monkeypatch):
+    """Above DIRECT_MAX the line adjustment's steps come from CG, without falling back to
+    the factor, and give the factor's poses."""
+    import cgamap.mapping.posegraph as pg
+    from cgamap.mapping.line_adjust import adjust, observations
+    from test_mapping_adjust import _mapped, _truth, _weak_chain
+
+    truth = _truth(40)
+    obs = observations(_mapped(truth).map)
+    rng = np.random.default_rng(3)
+    X0 = truth + np.column_stack([rng.normal(0, 0.04, (len(truth), 2)),
+                                  rng.normal(0, np.deg2rad(1.0), len(truth))])
+    X0[0] = truth[0]
+    exact, _ = adjust(X0, _weak_chain(X0), obs, 0)
+    monkeypatch.setattr(pg, "DIRECT_MAX", 0)
+    monkeypatch.setattr(pg, "spsolve", lambda *a, **k: pytest.fail("fell back to the factor"))
+    X, info = adjust(X0, _weak_chain(X0), obs, 0)
+    assert info["iterations"] >= 2
+    assert np.allclose(X, exact, atol=1e-7)
+
+
 def test_neighbour_pairs_are_the_same_in_any_chunking():
     from cgamap.mapping.slam2d import NeighbourParams, neighbour_pairs
 
