@@ -242,6 +242,10 @@ class Mapper:
         self.sweep_edges = 0  # tracking closures of the last finishing pass's sweep
         self.adjusted: dict = {}  # the line adjustment's figures (lines, observations, ...)
         self.dropped = 0  # nodes dropped by :meth:`compact` so far (node numbers shift)
+        # nodes before this one were placed by the last adopted finishing pass: the online
+        # optimisation leaves them there (it re-solved them with the pass's hundreds of
+        # thousands of edges, 1.2 s a closure, where the newer nodes alone take milliseconds)
+        self.finished_upto = 0
         # the graph's edges [n0, n1) are the last neighbour pass's; the scan-to-map edges
         # before ``_weighted`` already count NeighbourParams.sequential_weight
         self._neighbour_block = (0, 0)
@@ -403,6 +407,7 @@ class Mapper:
         self.last_opt -= cut
         self.last_loop -= cut
         self.last_aged -= cut
+        self.finished_upto = max(self.finished_upto - cut, 0)
         return cut
 
     def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
@@ -579,9 +584,10 @@ class Mapper:
 
     def optimize(self, final: bool = False) -> None:
         """Solve the pose graph and move the map with it (while mapping: the window of
-        :class:`LoopParams` ``online_window``; ``final``: all nodes)."""
+        :class:`LoopParams` ``online_window``, without the nodes an adopted finishing pass
+        placed, ``finished_upto``; ``final``: all nodes)."""
         LP = self.params.loop
-        start = 0 if final else max(0, self.count - LP.online_window)
+        start = 0 if final else max(0, self.count - LP.online_window, self.finished_upto)
         self.graph.optimize(fixed=self.anchors, free_from=start)
         refresh(self.map, self.poses)
         # the walls near the closure are the ones that came to coincide
@@ -677,6 +683,9 @@ class Mapper:
             self.calibration = job.calibration
             self.scale = job.calibration["scale"]
             self.drift_per_m = job.calibration["drift_per_m"]
+        # the snapshot's nodes stay where the pass put them; the ones mapped meanwhile only
+        # followed it
+        self.finished_upto = max(ref + 1, 0)
         refresh(self.map, new)
         dedupe(self.map, self.params.map)
         self.optimizations += 1

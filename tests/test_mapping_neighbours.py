@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from cgamap.drivers.sim.world import get_world
 from cgamap.mapping.correction import CorrectionParams, correct_batch, correct_pose
+from cgamap.mapping.evaluation import ate
 from cgamap.mapping.matching import LineIndex
 from cgamap.mapping.odometry import add_odometry_noise, compose_pose2d, relative
 from cgamap.mapping.segments import extract_segments
@@ -175,3 +176,29 @@ def test_online_closures_count_closure_weight_once_after_the_pass():
     np.testing.assert_allclose(g.info.array()[online], 0.25 * info0)
     m.apply_finish(m.finishing_job().run())  # again, as the daemon's next optimize
     np.testing.assert_allclose(g.info.array()[online], 0.25 * info0)
+
+
+def test_online_optimisation_leaves_the_finished_nodes_where_the_pass_put_them():
+    """After an adopted finishing pass (the daemon's periodic optimize) the online closures
+    solve only the nodes mapped since: the pass's own solution of the older ones, made with
+    all its scan pairs, stays; re-solving them with those edges cost 1.2 s a closure."""
+    w = get_world("loop")
+    t = np.arange(0, 2.3 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=4)
+    m = Mapper(MapperParams(neighbours=NeighbourParams(enabled=False)), initial_pose=odo[0])
+    m.keep_scans = True  # as the daemon's mapper
+    from dataclasses import replace
+
+    half = int(len(scans) * 1.2 / 2.3)
+    for s, o in zip(scans[:half], odo[:half], strict=True):
+        m.step(s.ranges, s.angle_min, s.angle_increment, o)
+    m.apply_finish(m.finishing_job(replace(m.params.neighbours, enabled=True)).run())
+    assert m.finished_upto == m.count == half
+    placed, opt0, loops0 = m.poses.copy(), m.optimizations, m.loops
+    for s, o in zip(scans[half:], odo[half:], strict=True):
+        m.step(s.ranges, s.angle_min, s.angle_increment, o)
+    assert m.loops > loops0 and m.optimizations > opt0, "no online closure after the pass"
+    np.testing.assert_array_equal(m.poses[:half], placed)
+    assert ate(m.poses, truth)["ate_trans_m"] < 0.1
