@@ -274,12 +274,13 @@ class PoseGraph:
         e[:, 2] = wrap(e[:, 2])
         return e
 
-    def normal_equations(self, X: np.ndarray, robust_scale: float,
+    def normal_equations(self, X: np.ndarray, robust_scale: float | np.ndarray,
                          edges: EdgeArrays | None = None, chunk: int = 1 << 16
                          ) -> tuple[sp.csr_matrix, np.ndarray, float]:
         """Gauss-Newton normal equations of the edges at poses ``X`` (n, 3): the sparse
         (3n, 3n) information H, the gradient g (the step solves H dx = -g) and the weighted
-        chi^2; loop edges carry Cauchy weights of scale ``robust_scale``.  No node is held.
+        chi^2; loop edges carry Cauchy weights of scale ``robust_scale`` (one, or one per
+        edge).  No node is held.
         ``edges``: :meth:`edge_arrays`, when the caller solves repeatedly.  The edges are
         taken ``chunk`` at a time: each edge's Jacobian blocks and products take ~430 bytes,
         and a daemon's graph has 600 000 edges."""
@@ -293,6 +294,7 @@ class PoseGraph:
         g = np.zeros(3 * n)
         chi2 = 0.0
         r3 = np.arange(3)
+        scale2 = np.broadcast_to(np.asarray(robust_scale, float) ** 2, (k,))
         for c0 in range(0, k, chunk):
             c1 = min(c0 + chunk, k)
             i, j = E.i[c0:c1], E.j[c0:c1]
@@ -300,7 +302,7 @@ class PoseGraph:
             e[:, 2] = wrap(e[:, 2])
             info = E.info[c0:c1]
             m2 = np.einsum("ki,kij,kj->k", e, info, e)
-            w = np.where(E.robust[c0:c1], 1.0 / (1.0 + m2 / robust_scale ** 2), 1.0)
+            w = np.where(E.robust[c0:c1], 1.0 / (1.0 + m2 / scale2[c0:c1]), 1.0)
             chi2 += float(np.sum(w * m2))
             c, s = np.cos(X[i, 2]), np.sin(X[i, 2])
             d = X[j, :2] - X[i, :2]
@@ -331,24 +333,28 @@ class PoseGraph:
         return H, g, chi2
 
     def optimize(self, iterations: int = 10, robust_scale: float = ROBUST_SCALE,
-                 fixed: int | list[int] = 0, free_from: int = 0) -> dict:
+                 fixed: int | list[int] = 0, free_from: int = 0, judged: int = 0) -> dict:
         """Gauss-Newton over all poses (the ``fixed`` node or nodes held); updates ``poses``
         in place.  ``free_from`` > 0 solves only the nodes from there on: the older nodes
         stay where they are, and those tied to the free ones by an edge are held, so the
-        cost follows the free nodes and their edges, not the whole graph."""
+        cost follows the free nodes and their edges, not the whole graph.  The first
+        iterations trust every closure (graduated), except the first ``judged`` edges: an
+        earlier solve has weighed them already."""
         n = len(self.poses)
         if n < 2 or not self.ei:
             return {"iterations": 0, "chi2": 0.0}
+        fresh = np.arange(len(self.ei)) >= judged
         if free_from > 0:
-            return self._optimize_window(iterations, robust_scale, fixed, free_from)
-        return self._gauss_newton(iterations, robust_scale, fixed)
+            return self._optimize_window(iterations, robust_scale, fixed, free_from, fresh)
+        return self._gauss_newton(iterations, robust_scale, fixed, fresh=fresh)
 
     def _gauss_newton(self, iterations: int, robust_scale: float, fixed: int | list[int],
-                      known: int = 0) -> dict:
+                      known: int = 0, fresh: np.ndarray | None = None) -> dict:
         """:meth:`optimize`'s iterations.  The first ``known`` nodes are no unknowns: they
         stay where they are, and their edges to the others act as priors on those (a
         window's boundary may be thousands of nodes, which a stiff prior per node would
-        leave in the system, and CG does not converge on that)."""
+        leave in the system, and CG does not converge on that).  ``fresh``: the edges the
+        graduated first iterations trust (default all)."""
         n = len(self.poses)
         X = np.array(self.poses)
         m = n - known
@@ -356,10 +362,14 @@ class PoseGraph:
         hold = hold_nodes(fx, m) if fx else None
         E = self.edge_arrays()
         chi2 = 0.0
+        wide = robust_scale * (30.0 if fresh is None else np.where(fresh, 30.0, 1.0))
         for it in range(iterations):
-            # graduated: the first passes trust every closure (a true one can disagree by
-            # metres before the graph has moved), then the Cauchy weights sort out the rest
-            H, g, chi2 = self.normal_equations(X, robust_scale * (30.0 if it < 2 else 1.0), E)
+            # graduated: the first passes trust every new closure (a true one can disagree
+            # by metres before the graph has moved), then the Cauchy weights sort out the
+            # rest.  A closure an earlier solve found wrong is not trusted again: two wrong
+            # ones on Intel moved the graph 0.7 m at every online solve, and the next eight
+            # iterations took it back
+            H, g, chi2 = self.normal_equations(X, wide if it < 2 else robust_scale, E)
             if known:
                 H, g = H[3 * known:, 3 * known:], g[3 * known:]
             if hold is not None:
@@ -374,7 +384,7 @@ class PoseGraph:
         return {"iterations": it + 1, "chi2": chi2}
 
     def _optimize_window(self, iterations: int, robust_scale: float,
-                         fixed: int | list[int], free_from: int) -> dict:
+                         fixed: int | list[int], free_from: int, fresh: np.ndarray) -> dict:
         ei, ej = self.ei.array(), self.ej.array()
         sel = np.nonzero(np.maximum(ei, ej) >= free_from)[0]
         if not len(sel):
@@ -388,7 +398,8 @@ class PoseGraph:
         sub = PoseGraph(self.poses[nodes], np.searchsorted(nodes, ei[sel]),
                         np.searchsorted(nodes, ej[sel]), self.z[sel], self.info[sel],
                         self.loop[sel])
-        got = sub._gauss_newton(iterations, robust_scale, fx or ([] if known else [0]), known)
+        got = sub._gauss_newton(iterations, robust_scale, fx or ([] if known else [0]), known,
+                                fresh[sel])
         free = nodes >= free_from
         self.poses[nodes[free]] = sub.poses[free]
         return {**got, "nodes": int(np.sum(free))}

@@ -246,6 +246,9 @@ class Mapper:
         # optimisation leaves them there (it re-solved them with the pass's hundreds of
         # thousands of edges, 1.2 s a closure, where the newer nodes alone take milliseconds)
         self.finished_upto = 0
+        # the graph's edges before this one were weighed by an earlier solve: the online
+        # optimisation's graduated first iterations trust only the newer closures
+        self._judged = 0
         # the graph's edges [n0, n1) are the last neighbour pass's; the scan-to-map edges
         # before ``_weighted`` already count NeighbourParams.sequential_weight
         self._neighbour_block = (0, 0)
@@ -403,6 +406,7 @@ class Mapper:
         n0, n1 = self._neighbour_block
         self._neighbour_block = (int(np.searchsorted(kept, n0)), int(np.searchsorted(kept, n1)))
         self._weighted = int(np.searchsorted(kept, self._weighted))
+        self._judged = int(np.searchsorted(kept, self._judged))
         self.dropped += cut
         self.last_opt -= cut
         self.last_loop -= cut
@@ -588,7 +592,9 @@ class Mapper:
         placed, ``finished_upto``; ``final``: all nodes)."""
         LP = self.params.loop
         start = 0 if final else max(0, self.count - LP.online_window, self.finished_upto)
-        self.graph.optimize(fixed=self.anchors, free_from=start)
+        self.graph.optimize(fixed=self.anchors, free_from=start,
+                            judged=0 if final else self._judged)
+        self._judged = len(self.graph.ei)
         refresh(self.map, self.poses)
         # the walls near the closure are the ones that came to coincide
         dedupe(self.map, self.params.map, since=None if final else self.count - 60)
@@ -686,6 +692,7 @@ class Mapper:
         # the snapshot's nodes stay where the pass put them; the ones mapped meanwhile only
         # followed it
         self.finished_upto = max(ref + 1, 0)
+        self._judged = len(self.graph.ei)
         refresh(self.map, new)
         dedupe(self.map, self.params.map)
         self.optimizations += 1

@@ -126,6 +126,28 @@ def _square_loop_graph(seed: int = 1) -> tuple[PoseGraph, np.ndarray]:
     return g, np.array(true)
 
 
+@pytest.mark.parametrize("window", [0, 35])
+def test_a_closure_judged_wrong_is_not_trusted_again(window):
+    """The graduated first iterations trust new closures only: a wrong one (1 m off along
+    the square's side) that a solve has already rejected does not drag the next solve's
+    graph away and back (the online mapper solves again at every disagreeing closure)."""
+    g, true = _square_loop_graph()
+    info = np.diag([1 / 0.02 ** 2, 1 / 0.02 ** 2, 1 / 0.01 ** 2]) * 4
+    wrong = compose(relative(true[5], true[45]), [1.0, 0.0, 0.0])
+    g.add_edge(5, 45, wrong, info, loop=True)
+    g.optimize(iterations=30, free_from=window)  # converged
+    solved = np.array(g.poses)
+    miss = relative(solved[5], solved[45]) - wrong
+    assert np.hypot(miss[0], miss[1]) > 0.8  # the wrong closure was rejected
+    again = PoseGraph([p.copy() for p in solved], g.ei, g.ej, g.z, g.info, g.loop)
+    got = again.optimize(free_from=window, judged=len(g.ei))
+    assert got["iterations"] <= 4
+    assert np.abs(np.array(again.poses) - solved).max() < 1e-4
+    # all trusted again (the old behaviour): dragged off, then back over many iterations
+    trusting = PoseGraph([p.copy() for p in solved], g.ei, g.ej, g.z, g.info, g.loop)
+    assert trusting.optimize(free_from=window)["iterations"] > got["iterations"]
+
+
 def test_windowed_solve_is_the_full_solve_with_the_old_nodes_held(monkeypatch):
     import cgamap.mapping.posegraph as pg
 
