@@ -15,6 +15,7 @@ import copy
 import os
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -23,9 +24,28 @@ from bench import intel
 EVERY = 4  # long runs: the daemon's finishing pass after every this many passes
 
 
-def run() -> dict:
-    from dataclasses import replace
+def _drive(m, scans, ref, order) -> np.ndarray:
+    """Map ``scans`` in ``order`` with their reference poses as odometry: ms per scan."""
+    ms = []
+    for k in order:
+        s = scans[k]
+        t = time.perf_counter()
+        m.step(s.ranges, s.angle_min, s.angle_increment, ref[k])
+        ms.append((time.perf_counter() - t) * 1e3)
+    return np.array(ms)
 
+
+def _order(p: int, n: int) -> range:
+    """Pass ``p``'s scan order: there (even passes) and back (odd ones)."""
+    return range(n) if p % 2 == 0 else range(n - 1, -1, -1)
+
+
+def _daemon_job(m):
+    """The finishing pass as the daemon's ``optimize`` takes it (MappingLoop.optimize_job)."""
+    return m.finishing_job(replace(m.params.neighbours, enabled=True), sweep=True)
+
+
+def run() -> dict:
     from cgamap.mapping.jit import warm_up
     from cgamap.mapping.linemap import copies
     from cgamap.mapping.slam2d import Mapper, MapperParams
@@ -40,13 +60,7 @@ def run() -> dict:
     m = Mapper(MapperParams(max_nodes=20_000), initial_pose=ref[0])
     out: dict = {"passes": passes, "scans_per_pass": len(scans), "per_pass": []}
     for p in range(passes):
-        order = range(len(scans)) if p % 2 == 0 else range(len(scans) - 1, -1, -1)
-        ms = []
-        for k in order:
-            s = scans[k]
-            t = time.perf_counter()
-            m.step(s.ranges, s.angle_min, s.angle_increment, ref[k])
-            ms.append((time.perf_counter() - t) * 1e3)
+        ms = _drive(m, scans, ref, _order(p, len(scans)))
         out["per_pass"].append({
             "ms_per_scan_median": round(float(np.median(ms)), 3),
             "ms_per_scan_mean": round(float(np.mean(ms)), 3),
@@ -55,14 +69,14 @@ def run() -> dict:
             "contribution_rows": len(m.map.c_seg)})
         if long and (p + 1) % EVERY == 0:
             t = time.perf_counter()
-            job = m.finishing_job(replace(m.params.neighbours, enabled=True), sweep=True)
-            got = m.apply_finish(job.run())
+            got = m.apply_finish(_daemon_job(m).run())
             out["per_pass"][-1]["finishing_pass"] = {
                 "s": round(time.perf_counter() - t, 1), "nodes": got["nodes"],
                 "max_shift_m": round(got["max_shift_m"], 3), "segments": len(m.map),
                 "copies_3cm": copies(m.map.a, m.map.b)}
     if not long:
-        out["beside_the_pass"] = _beside_the_pass(copy.deepcopy(m), scans, ref)
+        out["beside_the_pass"] = _beside_the_pass(
+            copy.deepcopy(m), scans, ref, _order(passes, len(scans))[:400])
         t = time.perf_counter()
         m.finish()
         out["finished"] = {"segments": len(m.map), "copies_3cm": copies(m.map.a, m.map.b),
@@ -70,33 +84,23 @@ def run() -> dict:
     return out
 
 
-def _beside_the_pass(m, scans, ref, n: int = 400) -> dict:
-    """Per-scan time of ``n`` scans of the next pass mapped while the daemon's finishing
-    pass (a job on a snapshot) runs in a thread of the same process, next to the same
-    scans mapped with nothing beside them (on a copy: the two must start alike)."""
-    from dataclasses import replace
-
-    def drive(mapper) -> np.ndarray:
-        ms = []
-        for k in range(n):  # the next pass runs forwards (passes alternate, 4 were driven)
-            s = scans[k]
-            t = time.perf_counter()
-            mapper.step(s.ranges, s.angle_min, s.angle_increment, ref[k])
-            ms.append((time.perf_counter() - t) * 1e3)
-        return np.array(ms)
+def _beside_the_pass(m, scans, ref, order: range) -> dict:
+    """Per-scan time of the scans ``order`` (of the next pass) mapped while the daemon's
+    finishing pass (a job on a snapshot) runs in a thread of the same process, next to the
+    same scans mapped with nothing beside them (on a copy: the two must start alike)."""
 
     def figures(ms: np.ndarray) -> dict:
         return {"ms_per_scan_median": round(float(np.median(ms)), 3),
                 "ms_per_scan_p95": round(float(np.percentile(ms, 95)), 2),
                 "ms_per_scan_max": round(float(ms.max()), 1)}
 
-    alone = drive(copy.deepcopy(m))
-    job = m.finishing_job(replace(m.params.neighbours, enabled=True), sweep=True)
+    alone = _drive(copy.deepcopy(m), scans, ref, order)
+    job = _daemon_job(m)
     worker = threading.Thread(target=job.run)
     t = time.perf_counter()
     worker.start()
-    beside = drive(m)
+    beside = _drive(m, scans, ref, order)
     overlapped = worker.is_alive()  # the pass outlasted the scans: all of them were beside it
     worker.join()
-    return {"scans": n, "alone": figures(alone), "beside": figures(beside),
+    return {"scans": len(order), "alone": figures(alone), "beside": figures(beside),
             "pass_s": round(time.perf_counter() - t, 1), "pass_outlasted_scans": overlapped}
