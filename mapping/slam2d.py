@@ -83,7 +83,8 @@ class LoopParams:
     guess_margin: float | None = 0.05
     # when the two match alike (within guess_margin), the submap cannot tell them apart: the
     # jump is then refused beyond this (m) plus this share of the odometry travel since the
-    # earlier visit (the drift a scan-matched trajectory may have gathered meanwhile)
+    # chain was last tied to the map: the later of the earlier visit and the last closure
+    # (the drift a scan-matched trajectory may have gathered meanwhile)
     tie_jump: tuple[float, float] = (0.3, 0.03)
     optimize_trans: float = 0.04  # re-optimise when a closure disagrees by more than this
     optimize_rot: float = 0.01    # (rad)
@@ -519,8 +520,13 @@ class Mapper:
                 moved[2]) > np.deg2rad(5.0):
             self.loop_stats["unconfirmed"] += 1
             return None
+        # the drift a jump may undo is what built up since the chain was last tied to the
+        # map (by any closure), not since the earlier visit: on Intel the travel since the
+        # visit (120 m) let a closure slide a corridor scan 1.1 m from a pose tied 12 scans
+        # before, that matched its submap exactly as well
+        since = max(j, self.last_loop)
         if self._guess_rivals(seg, sub, guess, corr, LP,
-                              float(self.travel[i] - self.travel[j])):
+                              float(self.travel[i] - self.travel[since])):
             self.loop_stats["guess_fits"] += 1
             return None
         return Hypothesis(corr.pose, best.score)
