@@ -67,10 +67,11 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
     mapper = Mapper(params, initial_pose=odometry[0] if len(odometry) else (0, 0, 0))
     times = []
     n = len(scans)
+    online = np.zeros((n, 3))
     t_all = time.perf_counter()
     for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True)):
         t = time.perf_counter()
-        mapper.step(scan.ranges, scan.angle_min, scan.angle_increment, odo)
+        online[k] = mapper.step(scan.ranges, scan.angle_min, scan.angle_increment, odo).pose
         times.append(time.perf_counter() - t)
         if progress is not None:
             progress(k + 1, n)
@@ -107,6 +108,9 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         odo = {**ate(odometry, R), **rpe(odometry, R)}
         report["odometry"] = {k: round(v, 4) if isinstance(v, float) else v
                               for k, v in odo.items()}
+        # each scan's pose as the mapper gave it when the scan came in (what a daemon serves
+        # the robot): later closures and the finishing pass have not corrected it yet
+        report["online"] = {k: round(v, 4) for k, v in ate(online, R).items()}
         # a log's reference is usually another SLAM run, not ground truth: how closely the
         # estimate and the reference each follow raw-point ICP between consecutive scans
         # says which of the two the ATE's disagreement is more likely to come from

@@ -32,6 +32,11 @@ def test_simulated_world_pose_error(name):
     assert res.report["ate_trans_m"] < 0.1, res.report
     assert res.report["ate_rot_deg"] < 1.5
     assert res.report["ate_trans_m"] < 0.2 * odo_ate
+    # the poses as given scan by scan, before later closures and the finishing pass corrected
+    # them: between the two (measured: loop 0.055 m against 0.007 m after and 1.95 m of
+    # odometry; corridor 0.12 m, 0.005 m, 1.0 m)
+    online = res.report["online"]["ate_trans_m"]
+    assert 2 * res.report["ate_trans_m"] < online < 0.25 * odo_ate, res.report["online"]
     assert 4 <= res.report["segments"] <= 60  # a clean map: no pile of duplicates
     # the finishing pass's odometry calibration: the preset's 2 % and 0.5 deg/m, as far as
     # this run's 100-140 noisy steps show them (measured: scale 0.988, drift 0.53-0.60)
