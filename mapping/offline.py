@@ -89,6 +89,9 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "final_optimisation_ms": round(t_final * 1e3, 1),
         "total_s": round(time.perf_counter() - t_all, 2),
         "loop_closures": mapper.loops,
+        # what became of the online closure attempts (tracked: taken by the cheap tracking
+        # correction; tried: relocalised in a submap, then refused by the reason counted)
+        "closure_attempts": dict(mapper.loop_stats),
         "sweep_closures": mapper.sweep_edges,
         "slips_recovered": mapper.slips,
         "optimisations": mapper.optimizations,

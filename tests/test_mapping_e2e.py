@@ -37,6 +37,8 @@ def test_simulated_world_pose_error(name):
     # odometry; corridor 0.12 m, 0.005 m, 1.0 m)
     online = res.report["online"]["ate_trans_m"]
     assert 2 * res.report["ate_trans_m"] < online < 0.25 * odo_ate, res.report["online"]
+    tries = res.report["closure_attempts"]
+    assert tries["tracked"] + tries["tried"] >= res.report["loop_closures"] > 0, tries
     assert 4 <= res.report["segments"] <= 60  # a clean map: no pile of duplicates
     # the finishing pass's odometry calibration: the preset's 2 % and 0.5 deg/m, as far as
     # this run's 100-140 noisy steps show them (measured: scale 0.988, drift 0.53-0.60)
