@@ -6,7 +6,8 @@ and scatter matrices add (parallel-axis rule), the line is refitted by total lea
 and its extent is the union of the projected extents.  Unmatched observations become new
 segments.  Short segments seen only once are aged out, and map segments that came to
 coincide (the same wall seen twice before the pose was pulled back) are fused periodically,
-so duplicate walls do not pile up.
+so duplicate walls do not pile up.  Segments the laser now sees through (a parked cart
+moved on, a door opened) are dropped too (:mod:`.free_space`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .free_space import ClearParams
 from .jit import kernel
 from .matching import match_candidates
 from .segments import Segments, tls_fit
@@ -46,6 +48,8 @@ class MapParams:
     # with its reference poses as odometry: 798 -> 1 327 segments after the finishing pass,
     # 692 of them with a copy within 3 cm; now 776 -> 789, 3)
     max_residual: float = 0.03
+    # segments the laser now sees through go (:mod:`.free_space`), judged with the aging
+    clear: ClearParams = field(default_factory=ClearParams)
 
 
 @dataclass
@@ -70,6 +74,13 @@ class LineMap:
     c_scat: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     c_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     c_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    # per segment: scans in a row that saw through it (:mod:`.free_space`); not saved in
+    # map files (evidence of the current run)
+    through: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+
+    def __post_init__(self) -> None:
+        if len(self.through) != len(self.a):  # built from end points, or an older state
+            self.through = np.zeros(len(self.a), int)
 
     def __len__(self) -> int:
         return len(self.a)
@@ -86,6 +97,7 @@ class LineMap:
         out = LineMap(self.a[keep], self.b[keep], self.n_pts[keep], self.centroid[keep],
                       self.scatter[keep], self.n_obs[keep], self.created[keep],
                       self.last_seen[keep], dict(self.metadata))
+        out.through = self.through[keep]
         if len(self.c_seg):
             new = remap[self.c_seg]
             ok = new >= 0
@@ -138,6 +150,7 @@ class LineMap:
         self.n_obs = np.concatenate([self.n_obs, np.ones(k, int)])
         self.created = np.concatenate([self.created, np.full(k, stamp)])
         self.last_seen = np.concatenate([self.last_seen, np.full(k, stamp)])
+        self.through = np.concatenate([self.through, np.zeros(k, int)])
 
 
 _IMAX, _IMIN = np.iinfo(np.int64).max, np.iinfo(np.int64).min
@@ -372,6 +385,7 @@ def integrate(lmap: LineMap, seg_g: Segments, stamp: int,
         lmap.n_obs[J] = n_obs.astype(int) + 1
         lmap.created[J] = first
         lmap.last_seen[J] = stamp
+        lmap.through[J] = 0  # seen again
         target[o] = J[go]
         rest = mi != J[gm]
         remove.extend(mi[rest].tolist())
@@ -403,7 +417,7 @@ def _redirect(lmap: LineMap, pairs: list[tuple[int, int]]) -> None:
 
 
 _FIELDS = ("a", "b", "n_pts", "centroid", "scatter", "n_obs", "created", "last_seen",
-           "c_seg", "c_node", "c_n", "c_cent", "c_scat", "c_a", "c_b")
+           "c_seg", "c_node", "c_n", "c_cent", "c_scat", "c_a", "c_b", "through")
 
 
 def _assign(dst: LineMap, src: LineMap) -> None:
@@ -439,10 +453,14 @@ def copies(a: np.ndarray, b: np.ndarray, dist: float = 0.03, angle_deg: float = 
 
 
 def age_out(lmap: LineMap, stamp: int, params: MapParams | None = None) -> int:
-    """Drop short segments seen only once long enough ago; returns how many went."""
+    """Drop short segments seen only once long enough ago, and segments the laser has seen
+    through in ``params.clear.scans`` scans in a row (:mod:`.free_space`); returns how many
+    went."""
     params = params or MapParams()
     drop = (lmap.n_obs <= 1) & (stamp - lmap.created > params.age_scans) & (
         lmap.length < params.age_min_length)
+    if params.clear.enabled:
+        drop |= lmap.through >= params.clear.scans
     if drop.any():
         _assign(lmap, lmap.subset(~drop))
     return int(drop.sum())
@@ -484,6 +502,9 @@ def dedupe(lmap: LineMap, params: MapParams | None = None, since: int | None = N
     np.maximum.at(last, group, lmap.last_seen[member])
     lmap.a[J], lmap.b[J], lmap.n_pts[J], lmap.centroid[J], lmap.scatter[J] = pa, pb, N, C, S
     lmap.n_obs[J], lmap.created[J], lmap.last_seen[J] = n_obs, first, last
+    through = np.full(n_comp, _IMAX)
+    np.minimum.at(through, group, lmap.through[member])
+    lmap.through[J] = through
     rest = member != J[group]
     remove = member[rest].tolist()
     _redirect(lmap, list(zip(remove, J[group[rest]].tolist(), strict=True)))

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_batch, correct_pose
+from .free_space import update_streaks
 from .line_adjust import AdjustParams, Contributions, adjust, associate
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
@@ -422,6 +423,9 @@ class Mapper:
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
+        if P.map.clear.enabled:
+            update_streaks(self.map, self.graph.poses[node][:2], seg_g.points, node,
+                           P.map.clear, self.travel.array(), self.last_loop)
         if node - self.last_aged >= max(P.map.age_every,
                                         len(self.map.c_seg) // P.map.age_rows):
             age_out(self.map, node, P.map)

@@ -110,3 +110,32 @@ def test_simulated_log_is_deterministic_and_true():
     assert np.abs(a[4].ranges[ok] - clean[ok]).max() < 0.1
     with pytest.raises(ValueError, match="positive"):
         simulated_scans(w, laps=0.0)
+
+
+def test_mover_walks_its_route_and_stands_at_each_stop():
+    from cgamap.drivers.sim.world import Mover
+
+    m = Mover(((0.0, 0.0), (4.0, 0.0)), speed=2.0, pause=3.0)  # 2 s a way, 3 s a stop
+    assert m.pose(1.0) == pytest.approx((2.0, 0.0, 0.0))        # half way out
+    assert m.pose(3.5)[:2] == pytest.approx((4.0, 0.0))          # standing at the far stop
+    x, y, h = m.pose(6.0)                                         # half way back
+    assert (x, y) == pytest.approx((2.0, 0.0)) and abs(h) == pytest.approx(np.pi)
+    assert m.pose(9.0)[:2] == pytest.approx((0.0, 0.0))          # home, standing
+    assert m.pose(11.0) == pytest.approx(m.pose(1.0))            # the cycle is 10 s
+    e = Mover(((1.0, 2.0),), size=(0.4, 0.2)).edges(0.0)
+    assert e.shape == (4, 4)
+    assert e[:, [0, 2]].min() == pytest.approx(0.8) and e[:, [1, 3]].max() == pytest.approx(2.1)
+
+
+def test_a_scan_sees_movers_where_they_are_at_its_time():
+    from cgamap.drivers.sim.world import Mover
+
+    w = box_world()
+    # a person walking across the beam 2 m ahead of the origin, on it at t = 1
+    w.movers.append(Mover(((2.0, -3.0), (2.0, 3.0)), speed=3.0, pause=100.0,
+                          phase=102.0, size=(0.3, 0.5)))
+    beam = np.array([0.0])
+    assert w.raycast(0.0, 0.0, 0.0, beam)[0] == pytest.approx(3.0)            # walls only
+    assert w.raycast(0.0, 0.0, 0.0, beam, t=1.0)[0] == pytest.approx(1.75)    # its near side
+    assert w.raycast(0.0, 0.0, 0.0, beam, t=0.5)[0] == pytest.approx(3.0)     # not yet there
+    assert get_world("expo").movers and not get_world("hall").movers

@@ -5,6 +5,9 @@ for any ray fan; the twins encode the answer in their own wire format.  Walls ar
 a base height and a height (``Wall.z0``, ``Wall.height``) so 3D renderers can extrude them;
 the 2D ray cast ignores heights.
 
+Things that move (:class:`Mover`: people, carts) are boxes that walk a route and stand at
+its stops; :meth:`World.scan` at time t sees them where they are then.
+
 Coordinates: metres, world frame x/y, headings counter-clockwise from +x (radians).
 """
 
@@ -26,6 +29,52 @@ class Wall:
     height: float = 2.5
     z0: float = 0.0
     kind: str = "wall"  # "wall", "furniture", ... (renderers may colour by it)
+
+
+@dataclass(frozen=True)
+class Mover:
+    """A box ``size`` (length along its way, width) that walks the closed ``route`` of
+    stops at ``speed`` and stands ``pause`` seconds at each: a person (about 0.3 x 0.5 m at
+    the height of a laser that sees the torso, standing to look at a booth), or a cart
+    parked for minutes.  ``phase`` seconds of its cycle have passed at t = 0."""
+
+    route: tuple[tuple[float, float], ...]
+    speed: float = 1.0
+    pause: float = 0.0
+    phase: float = 0.0
+    size: tuple[float, float] = (0.3, 0.5)
+
+    def pose(self, t: float) -> tuple[float, float, float]:
+        """(x, y, heading) at time ``t``: on the way between two stops, or standing at one
+        (facing the way it came)."""
+        p = np.asarray(self.route, dtype=float)
+        q = np.roll(p, -1, axis=0)
+        length = np.hypot(*(q - p).T)
+        walk = length / self.speed
+        cycle = float(np.sum(walk) + self.pause * len(p))
+        if cycle <= 0.0:
+            return float(p[0, 0]), float(p[0, 1]), 0.0
+        u = (t + self.phase) % cycle
+        for i in range(len(p)):  # a handful of stops
+            heading = float(np.arctan2(q[i, 1] - p[i, 1], q[i, 0] - p[i, 0]))
+            if u < walk[i]:
+                f = u / walk[i]
+                x, y = p[i] + f * (q[i] - p[i])
+                return float(x), float(y), heading
+            u -= walk[i]
+            if u < self.pause:
+                return float(q[i, 0]), float(q[i, 1]), heading
+            u -= self.pause
+        return float(p[0, 0]), float(p[0, 1]), 0.0
+
+    def edges(self, t: float) -> np.ndarray:
+        """(4, 4) the box's sides at time ``t`` as x0, y0, x1, y1."""
+        x, y, h = self.pose(t)
+        c, s = np.cos(h), np.sin(h)
+        hl, hw = self.size[0] / 2.0, self.size[1] / 2.0
+        corners = np.array([[x + c * u - s * v, y + s * u + c * v]
+                            for u, v in ((hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw))])
+        return np.hstack([corners, np.roll(corners, -1, axis=0)])
 
 
 @dataclass
@@ -86,6 +135,7 @@ class World:
     walls: list[Wall]
     waypoints: np.ndarray          # (k, 2) closed loop the trajectory passes through
     speed: float = 0.5             # m/s along the path
+    movers: list[Mover] = field(default_factory=list)  # people and carts (not in the map)
     _path: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
     @property
@@ -103,13 +153,22 @@ class World:
         xs, ys = s[:, [0, 2]], s[:, [1, 3]]
         return float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())
 
+    def movers_at(self, t: float) -> np.ndarray:
+        """(4k, 4) the movers' sides at time ``t`` (x0, y0, x1, y1)."""
+        if not self.movers:
+            return np.zeros((0, 4))
+        return np.vstack([m.edges(t) for m in self.movers])
+
     def raycast(self, x: float, y: float, theta: float, angles: np.ndarray,
-                max_range: float = np.inf) -> np.ndarray:
-        """Distance to the first wall along each beam at ``theta + angles`` from (x, y).
+                max_range: float = np.inf, t: float | None = None) -> np.ndarray:
+        """Distance to the first wall along each beam at ``theta + angles`` from (x, y); with
+        a time ``t``, to the first wall or mover there then.
 
         Vectorised over beams × walls.  Beams that hit nothing within ``max_range`` give inf.
         """
         seg = self.segments
+        if t is not None and self.movers:
+            seg = np.vstack([seg, self.movers_at(t)])
         a = theta + np.asarray(angles, dtype=float)
         d = np.stack([np.cos(a), np.sin(a)], axis=-1)[:, None, :]        # (m, 1, 2)
         p0 = seg[None, :, 0:2]                                              # (1, n, 2)
@@ -133,7 +192,7 @@ class World:
         x, y, th = self.trajectory(t)
         c, s = np.cos(th), np.sin(th)
         sx, sy = x + c * mount[0] - s * mount[1], y + s * mount[0] + c * mount[1]
-        r = self.raycast(sx, sy, th + mount[2], angles, max_range)
+        r = self.raycast(sx, sy, th + mount[2], angles, max_range, t)
         return noise.apply(r, rng) if noise is not None else r
 
     # -- trajectory ------------------------------------------------------------------------
@@ -230,6 +289,38 @@ def _hall() -> World:
     return World("hall", walls, way, speed=0.5)
 
 
+def _expo() -> World:
+    # The hall during a fair: 24 visitors walk between booths and stand at each for up to a
+    # minute, and 4 carts are parked for three minutes at a time, then moved on: in a lap
+    # of the robot's (4.5 min) a cart stands where the last lap saw floor.
+    w = _hall()
+    rng = np.random.default_rng(5)
+    blocks = np.array([[x - 0.4, y - 0.4, x + 0.4, y + 0.4] for x in range(10, 60, 10)
+                       for y in (12.0, 24.0)]
+                      + [[x, y, x + 3.0, y + 2.0] for x, y in
+                         [(8, 4), (20, 6), (33, 3), (45, 7), (12, 26.5), (38, 26.5),
+                          (48, 33.5)]])
+
+    def stop(clear: float) -> tuple[float, float]:
+        while True:  # off the robot's way and clear of the booths and pillars
+            x, y = rng.uniform(3.0, 57.0), rng.uniform(3.0, 33.0)
+            near_path = (min(abs(y - 18.0), abs(y - 31.0)) < clear and 2.0 < x < 58.0) or (
+                min(abs(x - 4.0), abs(x - 56.0)) < clear and 16.0 < y < 33.0)
+            inside = ((blocks[:, 0] - 1.0 < x) & (x < blocks[:, 2] + 1.0)
+                      & (blocks[:, 1] - 1.0 < y) & (y < blocks[:, 3] + 1.0)).any()
+            if not near_path and not inside:
+                return float(x), float(y)
+
+    for _ in range(24):
+        w.movers.append(Mover(tuple(stop(1.5) for _ in range(4)), speed=rng.uniform(0.6, 1.2),
+                              pause=rng.uniform(10.0, 60.0), phase=rng.uniform(0.0, 300.0)))
+    for _ in range(4):
+        w.movers.append(Mover(tuple(stop(2.5) for _ in range(3)), speed=0.8, pause=180.0,
+                              phase=rng.uniform(0.0, 600.0), size=(1.2, 0.8)))
+    w.name = "expo"
+    return w
+
+
 def _campus() -> World:
     # Six buildings round a 75 m x 24 m quad with trees (a few beams each, no lines): the
     # facades are 10-40 m from the path.
@@ -275,7 +366,7 @@ def _long_corridor() -> World:
 
 
 WORLDS = {"corridor": _corridor, "room": _room, "loop": _loop, "hall": _hall,
-          "campus": _campus, "long_corridor": _long_corridor}
+          "expo": _expo, "campus": _campus, "long_corridor": _long_corridor}
 
 
 def get_world(name: str) -> World:
