@@ -55,9 +55,9 @@ def warm_up() -> float:
     dedupe(lmap)
     correct_pose(seg, lmap.a, lmap.b, np.array([0.02, -0.01, 0.01]), 0.1)
     tls_from_moments(seg.n, seg.centroid, seg.scatter)
-    from .free_space import seen_through
+    from .free_space import update_streaks
 
-    seen_through(lmap.a, lmap.b, (0.0, 0.0), seg.points, drift=np.zeros(len(lmap)))
+    update_streaks(lmap, np.zeros(2), seg.points, 2, beam_step=float(beams[1] - beams[0]))
     # relocalisation's line-pair solve and hypothesis score (a trial or the daemon's first
     # relocalisation must not pay for their compilation)
     from .relocalize import DistanceField, _pair_translations, _score

@@ -305,7 +305,7 @@ class Mapper:
             self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m, 0.0, 0.0))
             self.odo_cov.append(np.zeros((3, 3)))
             self.last_odom = odom_l
-            self._merge(seg, i, None)
+            self._merge(seg, i, None, abs(angle_increment))
             return StepResult(pose, len(seg), None)
         raw = relative(self.last_odom, odom_l)
         self.last_odom = odom_l
@@ -369,7 +369,7 @@ class Mapper:
         # the correction already found the map segments near this scan (unless an
         # optimisation has just moved the map)
         near = corr.near if corr is not None and not optimized else None
-        self._merge(seg, i, near)
+        self._merge(seg, i, near, abs(angle_increment))
         pose = self.graph.poses[i].copy()
         if P.max_nodes and self.count > P.max_nodes:
             self.compact(max(P.max_nodes * 9 // 10, 1))
@@ -416,16 +416,20 @@ class Mapper:
         self.finished_upto = max(self.finished_upto - cut, 0)
         return cut
 
-    def _merge(self, seg: Segments, node: int, near: np.ndarray | None) -> None:
+    def _merge(self, seg: Segments, node: int, near: np.ndarray | None,
+               beam_step: float | None = None) -> None:
         P = self.params
         if self.keep_scans and len(self.scans) == node:
             self.scans.append((seg.a, seg.b))
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
-        if P.map.clear.enabled:
+        if P.map.clear.enabled and node % max(P.map.clear.every, 1) == 0:
             update_streaks(self.map, self.graph.poses[node][:2], seg_g.points, node,
-                           P.map.clear, self.travel.array(), self.last_loop)
+                           P.map.clear, self.travel.array(),
+                           # a closure ties the laser to the old map, once a solve applied
+                           # it if it disagreed (pending)
+                           self.last_opt if self.pending else self.last_loop, beam_step)
         if node - self.last_aged >= max(P.map.age_every,
                                         len(self.map.c_seg) // P.map.age_rows):
             age_out(self.map, node, P.map)

@@ -30,8 +30,9 @@ def to_wall(a):
 
 def test_beams_through_a_segment_onto_a_known_wall_count():
     a, b = np.array([BOX[0], WALL[0]]), np.array([BOX[1], WALL[1]])
-    through, hits = seen_through(a, b, (0.0, 0.0), fan(to_wall))
+    through, hits, covered = seen_through(a, b, (0.0, 0.0), fan(to_wall))
     assert through[0] >= 5 and hits[0] == 0      # the box is gone
+    assert covered[0] > 0.5
     assert through[1] == 0 and hits[1] > 100     # the wall is there
 
 
@@ -41,28 +42,47 @@ def test_beams_that_stop_on_a_segment_hit_it():
         return np.where(np.abs(x) <= 0.5, 3.0 / np.sin(a), to_wall(a))
 
     a, b = np.array([BOX[0], WALL[0]]), np.array([BOX[1], WALL[1]])
-    through, hits = seen_through(a, b, (0.0, 0.0), fan(to_box))
+    through, hits, _ = seen_through(a, b, (0.0, 0.0), fan(to_box))
     assert through[0] == 0 and hits[0] >= 5
 
 
 def test_no_evidence_without_a_known_wall_behind_or_from_one_alongside():
     # the returns land on nothing the map knows: they say nothing
-    through, _ = seen_through(np.array([BOX[0]]), np.array([BOX[1]]), (0.0, 0.0),
-                              fan(to_wall))
+    through, _, _ = seen_through(np.array([BOX[0]]), np.array([BOX[1]]), (0.0, 0.0),
+                                 fan(to_wall))
     assert through[0] == 0
     # the wall just 0.4 m behind the segment: the same wall where a pose error put it
     a = np.array([[-0.5, 5.6], WALL[0]])
     b = np.array([[0.5, 5.6], WALL[1]])
-    through, _ = seen_through(a, b, (0.0, 0.0), fan(to_wall))
+    through, _, _ = seen_through(a, b, (0.0, 0.0), fan(to_wall))
     assert through[0] == 0
+
+
+def test_an_opened_door_does_not_clear_its_wall():
+    # a 5 m wall 3 m ahead, fused with its closed door; now the door (0.9 m) is open and
+    # the beams through it reach the wall 6 m ahead, while the rest of the wall is hidden
+    # behind a cabinet 2 m ahead (returns short of it: no evidence either way)
+    def seen(a):
+        x = 3.0 / np.tan(a)
+        door = (x > -0.45) & (x < 0.45)
+        return np.where(door, to_wall(a), 2.0 / np.sin(a))
+
+    a = np.array([[-2.5, 3.0], WALL[0], [-3.0, 2.0]])
+    b = np.array([[2.5, 3.0], WALL[1], [3.0, 2.0]])
+    through, hits, covered = seen_through(a, b, (0.0, 0.0), fan(seen))
+    assert through[0] > 0 and hits[0] == 0
+    assert covered[0] < 0.25
+    m = LineMap(a=a, b=b)
+    m.last_seen = np.zeros(3, int)
+    assert update_streaks(m, np.zeros(2), fan(seen), 1) == 0
 
 
 def test_drift_since_the_last_tie_withholds_the_evidence():
     a, b = np.array([BOX[0], WALL[0]]), np.array([BOX[1], WALL[1]])
-    through, _ = seen_through(a, b, (0.0, 0.0), fan(to_wall), drift=np.array([0.0, 0.0]))
+    through, _, _ = seen_through(a, b, (0.0, 0.0), fan(to_wall), drift=np.array([0.0, 0.0]))
     assert through[0] > 0
     # 40 m of travel since the box was last seen, no loop closed: 1.2 m of possible drift
-    through, _ = seen_through(a, b, (0.0, 0.0), fan(to_wall), drift=np.array([1.2, 1.2]))
+    through, _, _ = seen_through(a, b, (0.0, 0.0), fan(to_wall), drift=np.array([1.2, 1.2]))
     assert through[0] == 0
 
 
