@@ -15,7 +15,6 @@ import copy
 import os
 import threading
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -38,11 +37,6 @@ def _drive(m, scans, ref, order) -> np.ndarray:
 def _order(p: int, n: int) -> range:
     """Pass ``p``'s scan order: there (even passes) and back (odd ones)."""
     return range(n) if p % 2 == 0 else range(n - 1, -1, -1)
-
-
-def _daemon_job(m):
-    """The finishing pass as the daemon's ``optimize`` takes it (MappingLoop.optimize_job)."""
-    return m.finishing_job(replace(m.params.neighbours, enabled=True), sweep=True)
 
 
 def run() -> dict:
@@ -69,7 +63,7 @@ def run() -> dict:
             "contribution_rows": len(m.map.c_seg)})
         if long and (p + 1) % EVERY == 0:
             t = time.perf_counter()
-            got = m.apply_finish(_daemon_job(m).run())
+            got = m.apply_finish(m.live_finishing_job().run())
             out["per_pass"][-1]["finishing_pass"] = {
                 "s": round(time.perf_counter() - t, 1), "nodes": got["nodes"],
                 "max_shift_m": round(got["max_shift_m"], 3), "segments": len(m.map),
@@ -95,7 +89,7 @@ def _beside_the_pass(m, scans, ref, order: range) -> dict:
                 "ms_per_scan_max": round(float(ms.max()), 1)}
 
     alone = _drive(copy.deepcopy(m), scans, ref, order)
-    job = _daemon_job(m)
+    job = m.live_finishing_job()
     worker = threading.Thread(target=job.run)
     t = time.perf_counter()
     worker.start()

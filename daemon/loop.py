@@ -169,13 +169,9 @@ class Mapper2D:
         self.m.map = LineMap(**{k: v for k, v in st["map"].items() if k in names})
 
     def optimize_job(self) -> Any:
-        """The finishing pass on a snapshot of the kept nodes (``Mapper.finishing_job``),
-        with the pass's parameters enabled (``NeighbourParams.max_pairs`` bounds each node's
-        spatial pairs: months of passes through one room must not make them quadratic)."""
-        from dataclasses import replace
-
-        NP = replace(self.m.params.neighbours, enabled=True)
-        return self.m.finishing_job(NP, sweep=True)
+        """The finishing pass on a snapshot of the kept nodes
+        (``Mapper.live_finishing_job``)."""
+        return self.m.live_finishing_job()
 
     def apply_optimize(self, job: Any) -> dict:
         """Adopt a computed job; a mapper replaced meanwhile (checkpoint load) ignores it."""

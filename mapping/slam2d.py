@@ -643,6 +643,13 @@ class Mapper:
             raise ValueError("this mapper keeps no per-scan segments (keep_scans)")
         return self._job(NP, sweep)
 
+    def live_finishing_job(self) -> FinishJob:
+        """:meth:`finishing_job` as a mapper that keeps mapping takes it (the daemon's
+        ``optimize``): the pass's parameters enabled whatever the mapping ones say, with the
+        tracking sweep (``NeighbourParams.max_pairs`` bounds each node's spatial pairs:
+        months of passes through one room must not make them quadratic)."""
+        return self.finishing_job(replace(self.params.neighbours, enabled=True), sweep=True)
+
     def _job(self, NP: NeighbourParams | None, sweep: bool) -> FinishJob:
         """:meth:`finishing_job`; without kept scans (``keep_scans`` off) a job of the line
         adjustment alone."""
