@@ -84,17 +84,20 @@ def _crossings(pts, ox, oy, a, b, cand, drift, beam_step, end_share, end_margin,
     rng = np.empty(m)
     for i in range(m):
         rng[i] = math.sqrt((pts[i, 0] - ox) ** 2 + (pts[i, 1] - oy) ** 2)
+    edge = np.empty((k, 3))  # per candidate: its direction (x, y) and length
+    for c in range(k):
+        j = cand[c]
+        edge[c, 0], edge[c, 1] = b[j, 0] - a[j, 0], b[j, 1] - a[j, 1]
+        edge[c, 2] = math.sqrt(edge[c, 0] ** 2 + edge[c, 1] ** 2)
     # the segment each return lies on (-1: none): a beam through a segment counts only when
     # it lands on another one, a wall the map knows
     on = np.full(m, -1, np.int64)
     best = np.full(m, np.inf)
     for c in range(k):
-        j = cand[c]
-        ex, ey = b[j, 0] - a[j, 0], b[j, 1] - a[j, 1]
-        L = math.sqrt(ex * ex + ey * ey)
+        j, L = cand[c], edge[c, 2]
         if L <= 0.0:
             continue
-        ux, uy = ex / L, ey / L
+        ux, uy = edge[c, 0] / L, edge[c, 1] / L
         for i in range(m):
             qx, qy = pts[i, 0] - a[j, 0], pts[i, 1] - a[j, 1]
             along = qx * ux + qy * uy
@@ -104,9 +107,7 @@ def _crossings(pts, ox, oy, a, b, cand, drift, beam_step, end_share, end_margin,
             if off <= hit_tol + slack + slack_per_m * rng[i] and off < best[i]:
                 best[i], on[i] = off, j
     for c in range(k):
-        j = cand[c]
-        ex, ey = b[j, 0] - a[j, 0], b[j, 1] - a[j, 1]
-        L = math.sqrt(ex * ex + ey * ey)
+        j, (ex, ey, L) = cand[c], edge[c]
         if L <= 0.0:
             continue
         end = min(end_share * L, end_margin)
