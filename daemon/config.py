@@ -82,30 +82,59 @@ def _non_empty(v) -> str | None:
     return None if v.strip() else "must not be empty"
 
 
-def _check_params2d(v: dict) -> str | None:
-    """The scalar fields of ``mapping.slam2d.MapperParams`` (the laser mount comes from the
-    device's mount), each of its default's type: a typo is an error, not ignored."""
-    from dataclasses import MISSING, fields, is_dataclass
+def with_overrides(default, values: dict, where: str = ""):
+    """``default`` (a dataclass instance) with the fields ``values`` names replaced, nested
+    dataclasses from nested mappings (``{"map": {"clear": {"enabled": False}}}``), each
+    value of its default's type (lists for tuples).  ValueError naming the dotted field for
+    an unknown name or a wrong type: a typo is an error, not ignored."""
+    from dataclasses import MISSING, fields, is_dataclass, replace
 
-    from cgamap.mapping.slam2d import MapperParams
-
-    known = {f.name: f.default for f in fields(MapperParams)
-             if f.default is not MISSING and not is_dataclass(f.default) and f.name != "mount"}
-    for key, value in v.items():
+    known = {}
+    for f in fields(default):
+        if f.init and (f.default is not MISSING or f.default_factory is not MISSING):
+            known[f.name] = getattr(default, f.name)
+    changes = {}
+    for key, value in values.items():
+        name = f"{where}{key}"
         if key not in known:
-            return f"unknown 2D mapper parameter {key!r} (one of {', '.join(sorted(known))})"
+            raise ValueError(f"unknown 2D mapper parameter {name!r} (one of "
+                             f"{', '.join(where + k for k in sorted(known))})")
         want = known[key]
+        if is_dataclass(want):
+            if not isinstance(value, dict):
+                raise ValueError(f"{name}: expected a mapping of its fields, got {value!r}"[:160])
+            changes[key] = with_overrides(want, value, f"{name}.")
+            continue
         if isinstance(want, bool):
             ok = isinstance(value, bool)
         elif isinstance(want, int):
             ok = isinstance(value, int) and not isinstance(value, bool)
         elif isinstance(want, float):
             ok = isinstance(value, int | float) and not isinstance(value, bool)
-        else:  # tuples of numbers
+        elif isinstance(want, tuple):  # tuples of numbers
             ok = isinstance(value, list) and len(value) == len(want) and all(
                 isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+            value = tuple(value) if ok else value
+        else:
+            ok = False
         if not ok:
-            return f"{key}: expected {_type_name(want)} like {want!r}, got {value!r}"[:160]
+            raise ValueError(f"{name}: expected {_type_name(want)} like {want!r}, "
+                             f"got {value!r}"[:160])
+        changes[key] = value
+    return replace(default, **changes)
+
+
+def _check_params2d(v: dict) -> str | None:
+    """``mapping.slam2d.MapperParams`` overrides (:func:`with_overrides`; the laser mount
+    comes from the device's mount)."""
+    from cgamap.mapping.slam2d import MapperParams
+
+    if "mount" in v:
+        return "mount: set by the laser device's mount, not here"
+    try:
+        with_overrides(MapperParams(), v)
+    except ValueError as exc:
+        return str(exc)
     return None
 
 

@@ -16,7 +16,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import fields, is_dataclass
+from dataclasses import fields
 from typing import Any
 
 import numpy as np
@@ -105,16 +105,16 @@ class Mapper2D:
     def __init__(self, mount: tuple[float, float, float] | None, params: dict):
         from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
 
-        kw = {k: v for k, v in params.items() if k in {f.name for f in fields(MapperParams)}
-              and not is_dataclass(getattr(MapperParams, k, None))}
-        # a daemon runs for months: the pose graph keeps its newest nodes (params2d.max_nodes)
-        kw.setdefault("max_nodes", 20_000)
-        # a daemon never finishes: the finishing pass runs on demand (``optimize``), so the
-        # mapper's own pass stays off while it keeps each kept node's segments for it (they
-        # are compacted away with their nodes)
-        self._make = lambda pose: Mapper(
-            MapperParams(mount=mount, neighbours=NeighbourParams(enabled=False), **kw),
-            initial_pose=pose)
+        from .config import with_overrides
+
+        # a daemon runs for months: the pose graph keeps its newest nodes (params2d.max_nodes);
+        # it never finishes: the finishing pass runs on demand (``optimize``), so the mapper's
+        # own pass stays off while it keeps each kept node's segments for it (they are
+        # compacted away with their nodes)
+        base = MapperParams(mount=mount, neighbours=NeighbourParams(enabled=False),
+                            max_nodes=20_000)
+        P = with_overrides(base, params)
+        self._make = lambda pose: Mapper(P, initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
         self.m.keep_scans = True
         self.node_stamps: collections.deque = collections.deque()  # scan stamp per graph node

@@ -219,6 +219,18 @@ def test_the_daemon_bounds_its_pose_graph():
     assert len(small.segments()) >= 4  # the map outlives the dropped nodes
 
 
+def test_nested_mapper_parameters_reach_the_mapper():
+    """params2d sets nested parameters too: a building with glass walls turns the
+    free-space clearing off (map.clear.enabled), and the daemon's own settings stay."""
+    assert MappingLoop(cfg(), devices={}).mapper.m.params.map.clear.enabled
+    loop = MappingLoop(cfg(params2d={"map": {"clear": {"enabled": False, "scans": 5}},
+                                     "seq_sigma": [0.02, 0.01]}), devices={})
+    P = loop.mapper.m.params
+    assert not P.map.clear.enabled and P.map.clear.scans == 5
+    assert P.map.age_scans == 12 and P.seq_sigma == (0.02, 0.01)
+    assert P.max_nodes == 20_000 and not P.neighbours.enabled
+
+
 @pytest.mark.parametrize("push", ["turn", "sideways"])
 def test_a_push_the_wheels_did_not_see_is_counted_and_mapped_through(push):
     # from the 21st scan on the odometry reports the heading 3.7 deg short (the robot was
