@@ -295,21 +295,20 @@ def _expo() -> World:
     # of the robot's (4.5 min) a cart stands where the last lap saw floor.
     w = _hall()
     rng = np.random.default_rng(5)
-    blocks = np.array([[x - 0.4, y - 0.4, x + 0.4, y + 0.4] for x in range(10, 60, 10)
-                       for y in (12.0, 24.0)]
-                      + [[x, y, x + 3.0, y + 2.0] for x, y in
-                         [(8, 4), (20, 6), (33, 3), (45, 7), (12, 26.5), (38, 26.5),
-                          (48, 33.5)]])
+    inner = np.array([[v.x0, v.y0, v.x1, v.y1] for v in w.walls if v.kind != "wall"])
+    way = w._dense_path()[1]
+
+    def gap(p: np.ndarray, seg: np.ndarray) -> float:
+        d = seg[:, 2:] - seg[:, :2]
+        t = np.clip(np.einsum("kx,kx->k", p - seg[:, :2], d) / np.einsum("kx,kx->k", d, d),
+                    0.0, 1.0)
+        return float(np.hypot(*(p - seg[:, :2] - t[:, None] * d).T).min())
 
     def stop(clear: float) -> tuple[float, float]:
-        while True:  # off the robot's way and clear of the booths and pillars
-            x, y = rng.uniform(3.0, 57.0), rng.uniform(3.0, 33.0)
-            near_path = (min(abs(y - 18.0), abs(y - 31.0)) < clear and 2.0 < x < 58.0) or (
-                min(abs(x - 4.0), abs(x - 56.0)) < clear and 16.0 < y < 33.0)
-            inside = ((blocks[:, 0] - 1.0 < x) & (x < blocks[:, 2] + 1.0)
-                      & (blocks[:, 1] - 1.0 < y) & (y < blocks[:, 3] + 1.0)).any()
-            if not near_path and not inside:
-                return float(x), float(y)
+        while True:  # off the robot's way, clear of (and not inside) the booths and pillars
+            p = rng.uniform((3.0, 3.0), (57.0, 33.0))
+            if (np.hypot(*(way - p).T).min() >= clear and gap(p, inner) > 1.2):
+                return float(p[0]), float(p[1])
 
     for _ in range(24):
         w.movers.append(Mover(tuple(stop(1.5) for _ in range(4)), speed=rng.uniform(0.6, 1.2),
