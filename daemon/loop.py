@@ -131,6 +131,11 @@ class Mapper2D:
         """Scans the mapper found again after the odometry had put them out of reach."""
         return self.m.slips
 
+    @property
+    def cleared(self) -> int:
+        """Map segments the mapper dropped because later scans saw through them."""
+        return self.m.cleared
+
     def step(self, scan: LaserScan, odom) -> tuple[np.ndarray, float | None, int]:
         added = self.m.count + self.m.dropped
         try:
@@ -444,12 +449,15 @@ class MappingLoop:
                 self.pose = compose_pose2d(self.pose, relative(self.last_scan_odom, odom))
             q, nseg = None, 0
         else:
-            slips = self.mapper.slips
+            slips, cleared = self.mapper.slips, self.mapper.cleared
             self.pose, q, nseg = self.mapper.step(scan, odom)
             if self.mapper.slips > slips:
                 # the odometry put this scan beyond the correction's reach (wheel slip, a
                 # push): found again from the walls (mapping.slip)
                 self.counts["slips_recovered"] += 1
+            if self.mapper.cleared > cleared:
+                # map segments later scans saw through (mapping.free_space)
+                self.counts["segments_cleared"] += self.mapper.cleared - cleared
         self.last_scan_odom = odom
         self.pose_stamp_ns = scan.stamp_ns
         self.scan_poses.add(scan.stamp_ns, self.pose)

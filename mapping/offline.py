@@ -94,6 +94,8 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "closure_attempts": dict(mapper.loop_stats),
         "sweep_closures": mapper.sweep_edges,
         "slips_recovered": mapper.slips,
+        # map segments later scans saw through (people, carts, doors that moved on)
+        "segments_cleared": mapper.cleared,
         "optimisations": mapper.optimizations,
         "line_adjustment": mapper.adjusted,
     }

@@ -233,6 +233,7 @@ class Mapper:
         self.calibration: dict = {}  # the last finishing pass's estimate
         self.calib_n = 0
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
+        self.cleared = 0         # map segments the laser saw through, dropped (:mod:`.free_space`)
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
@@ -432,6 +433,8 @@ class Mapper:
                            self.last_opt if self.pending else self.last_loop, beam_step)
         if node - self.last_aged >= max(P.map.age_every,
                                         len(self.map.c_seg) // P.map.age_rows):
+            if P.map.clear.enabled:
+                self.cleared += int(np.count_nonzero(self.map.through >= P.map.clear.scans))
             age_out(self.map, node, P.map)
             self.last_aged = node
         if node % P.map.dedupe_every == 0:

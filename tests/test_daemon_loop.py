@@ -98,6 +98,7 @@ class FakeMapper:
         self.quality = quality
         self.reloc_calls = 0
         self.slips = 0
+        self.cleared = 0
         self.p = np.zeros(3)
 
     def step(self, scan, odom):

@@ -146,5 +146,7 @@ def test_a_cart_that_left_is_cleared_from_the_map(clear):
     at_cart = np.hypot(mid[:, 0] - spot[0], mid[:, 1] - spot[1]) < 0.45
     if clear:
         assert not at_cart.any()
+        assert res.report["segments_cleared"] >= 1
     else:
         assert at_cart.any()  # what the clearing removes is there without it
+        assert res.report["segments_cleared"] == 0
