@@ -51,15 +51,13 @@ def _limited(log: Path) -> dict:
 def _phantoms(res, world, static) -> dict:
     import numpy as np
     from cgamap.mapping.evaluation import apply_pose
+    from cgamap.mapping.matching import segment_distances
 
     m, n = res.map, len(res.poses)
     T = res.report["alignment_to_reference"]
     ends = [apply_pose(T, np.column_stack([p, np.zeros(len(p))]))[:, :2] for p in (m.a, m.b)]
     mid = 0.5 * (ends[0] + ends[1])
-    a, d = static[:, :2], static[:, 2:] - static[:, :2]
-    t = np.clip(np.einsum("mkx,kx->mk", mid[:, None] - a, d) / np.sum(d * d, 1), 0.0, 1.0)
-    gap = np.hypot(*(mid[:, None] - a - t[..., None] * d).transpose(2, 0, 1)).min(axis=1)
-    ph = gap > 0.25
+    ph = segment_distances(mid, static[:, :2], static[:, 2:]).min(axis=1) > 0.25
     stale = ph & (m.last_seen < n - round(world.path_length / world.speed))
     length = np.hypot(*(ends[1] - ends[0]).T)
     return {"segments": len(m), "phantoms": int(ph.sum()),

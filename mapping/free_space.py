@@ -154,6 +154,14 @@ def _in_reach(a, b, lo_x, lo_y, hi_x, hi_y):
     return out[:n]
 
 
+def _beam_step(pts: np.ndarray, origin) -> float:
+    """The median angle between neighbouring beams (points in beam order)."""
+    if len(pts) < 2:
+        return 0.0
+    bearing = np.unwrap(np.arctan2(pts[:, 1] - origin[1], pts[:, 0] - origin[0]))
+    return float(np.median(np.abs(np.diff(bearing))))
+
+
 def _run(a, b, cand, origin, pts, P: ClearParams, drift, beam_step: float):
     return _crossings(pts, float(origin[0]), float(origin[1]), a, b, cand, drift,
                       float(beam_step), P.end_share, P.end_margin, P.margin, P.margin_rel,
@@ -177,8 +185,7 @@ def seen_through(a: np.ndarray, b: np.ndarray, origin, points: np.ndarray,
         return np.zeros(len(a), int), np.zeros(len(a), int), np.zeros(len(a))
     drift = np.zeros(len(a)) if drift is None else np.ascontiguousarray(drift, dtype=float)
     if beam_step is None:
-        bearing = np.unwrap(np.arctan2(pts[:, 1] - origin[1], pts[:, 0] - origin[0]))
-        beam_step = float(np.median(np.abs(np.diff(bearing)))) if len(pts) > 1 else 0.0
+        beam_step = _beam_step(pts, origin)
     return _run(a, b, np.arange(len(a)), origin, pts, P, drift, beam_step)
 
 
@@ -213,8 +220,7 @@ def update_streaks(lmap, origin, points: np.ndarray, stamp: int,
     else:
         drift = np.zeros(len(near))
     if beam_step is None:
-        bearing = np.unwrap(np.arctan2(pts[:, 1] - origin[1], pts[:, 0] - origin[0]))
-        beam_step = float(np.median(np.abs(np.diff(bearing)))) if len(pts) > 1 else 0.0
+        beam_step = _beam_step(pts, origin)
     through, hits, covered = _run(a, b, near, origin, pts, P, drift, beam_step)
     gone = (through >= P.min_beams) & (covered >= P.cover) & (hits == 0) & (seen != stamp)
     lmap.through[near[gone]] += 1

@@ -50,6 +50,16 @@ def sphere_relation(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
     return d12 ** 2 - n1[:, None] * n2[None, :]
 
 
+def segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances (len(p), len(a)) of 2D points p to segments a->b."""
+    d = b - a
+    t = np.clip(np.einsum("pk,sk->ps", p, d) - np.einsum("sk,sk->s", a, d),
+                0, None) / np.maximum(np.einsum("sk,sk->s", d, d), 1e-18)
+    t = np.minimum(t, 1.0)
+    q = a[None] + t[..., None] * d[None]
+    return np.linalg.norm(p[:, None, :] - q, axis=-1)
+
+
 def line_normals(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals n (..., k, 2) and offsets c (..., k) with n.x = c on the line a-b."""
     d = b - a

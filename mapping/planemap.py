@@ -26,6 +26,7 @@ from cgamap.cga import (
 )
 
 from .fileio import write_text_atomic
+from .matching import segment_distances
 from .planes import hull_2d, lift_uv, min_rect_2d, to_plane_uv
 from .render import write_image_atomic
 
@@ -91,16 +92,6 @@ def _min_rect(extent: np.ndarray, normal: np.ndarray, rho: float) -> np.ndarray:
     return lift_uv(min_rect_2d(to_plane_uv(extent, normal)), normal, rho)
 
 
-def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distances (len(p), len(a)) of 2D points to segments a->b."""
-    d = b - a
-    t = np.clip(np.einsum("pk,sk->ps", p, d) - np.einsum("sk,sk->s", a, d),
-                0, None) / np.maximum(np.einsum("sk,sk->s", d, d), 1e-18)
-    t = np.minimum(t, 1.0)
-    q = a[None] + t[..., None] * d[None]
-    return np.linalg.norm(p[:, None, :] - q, axis=-1)
-
-
 def polygon_gap(poly_a: np.ndarray, poly_b: np.ndarray) -> float:
     """0 when two convex 2D polygons overlap, else the distance between their boundaries."""
     a32, b32 = poly_a.astype(np.float32), poly_b.astype(np.float32)
@@ -109,8 +100,8 @@ def polygon_gap(poly_a: np.ndarray, poly_b: np.ndarray) -> float:
         if area > 0:
             return 0.0
     ea, eb = np.roll(poly_a, -1, axis=0), np.roll(poly_b, -1, axis=0)
-    return float(min(_segment_distance(poly_a, poly_b, eb).min(),
-                     _segment_distance(poly_b, poly_a, ea).min()))
+    return float(min(segment_distances(poly_a, poly_b, eb).min(),
+                     segment_distances(poly_b, poly_a, ea).min()))
 
 
 # ---- the map -------------------------------------------------------------------------------

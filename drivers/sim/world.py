@@ -299,6 +299,8 @@ def _expo() -> World:
     way = w._dense_path()[1]
 
     def gap(p: np.ndarray, seg: np.ndarray) -> float:
+        # point to segments (drivers import nothing of mapping, where this lives as
+        # matching.segment_distances)
         d = seg[:, 2:] - seg[:, :2]
         t = np.clip(np.einsum("kx,kx->k", p - seg[:, :2], d) / np.einsum("kx,kx->k", d, d),
                     0.0, 1.0)
