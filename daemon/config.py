@@ -82,7 +82,7 @@ def _non_empty(v) -> str | None:
     return None if v.strip() else "must not be empty"
 
 
-def with_overrides(default, values: dict, where: str = ""):
+def with_overrides(default, values: dict, where: str = "", what: str = "2D mapper parameter"):
     """``default`` (a dataclass instance) with the fields ``values`` names replaced, nested
     dataclasses from nested mappings (``{"map": {"clear": {"enabled": False}}}``), each
     value of its default's type (lists for tuples).  ValueError naming the dotted field for
@@ -97,13 +97,13 @@ def with_overrides(default, values: dict, where: str = ""):
     for key, value in values.items():
         name = f"{where}{key}"
         if key not in known:
-            raise ValueError(f"unknown 2D mapper parameter {name!r} (one of "
+            raise ValueError(f"unknown {what} {name!r} (one of "
                              f"{', '.join(where + k for k in sorted(known))})")
         want = known[key]
         if is_dataclass(want):
             if not isinstance(value, dict):
                 raise ValueError(f"{name}: expected a mapping of its fields, got {value!r}"[:160])
-            changes[key] = with_overrides(want, value, f"{name}.")
+            changes[key] = with_overrides(want, value, f"{name}.", what)
             continue
         if isinstance(want, bool):
             ok = isinstance(value, bool)
@@ -111,6 +111,8 @@ def with_overrides(default, values: dict, where: str = ""):
             ok = isinstance(value, int) and not isinstance(value, bool)
         elif isinstance(want, float):
             ok = isinstance(value, int | float) and not isinstance(value, bool)
+        elif isinstance(want, str):
+            ok = isinstance(value, str)
         elif isinstance(want, tuple):  # tuples of numbers
             ok = isinstance(value, list) and len(value) == len(want) and all(
                 isinstance(x, int | float) and not isinstance(x, bool) for x in value)
@@ -133,6 +135,61 @@ def _check_params2d(v: dict) -> str | None:
         return "mount: set by the laser device's mount, not here"
     try:
         with_overrides(MapperParams(), v)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+@dataclass(frozen=True)
+class Frames3D:
+    """How the daemon turns a camera frame into planes: the ``mapping.params3d`` keys of
+    its own; the others are :class:`~cgamap.mapping.planes.PlaneParams` fields (one flat
+    mapping, as configs have written it)."""
+
+    max_depth: float = 8.0    # points farther than this from the camera are dropped (m)
+    stride: int = 4           # every stride-th pixel in each direction
+    method: str = "ransac"    # plane detector: ransac or hough
+
+
+PLANE_METHODS = ("ransac", "hough")
+
+
+def params3d(values: dict):
+    """``mapping.params3d`` as (:class:`Frames3D`, ``PlaneParams``).  ValueError naming the
+    key for an unknown name, a wrong type or a value out of range."""
+    from dataclasses import fields
+
+    from cgamap.mapping.planes import PlaneParams
+
+    own = {f.name for f in fields(Frames3D)}
+    frames = Frames3D()
+    planes = PlaneParams()
+    known = {f.name for f in fields(PlaneParams)} | own
+    unknown = sorted(k for k in values if k not in known)
+    if unknown:
+        raise ValueError(f"unknown 3D mapping parameter {unknown[0]!r} (one of "
+                         f"{', '.join(sorted(known))})")
+    frames = with_overrides(frames, {k: v for k, v in values.items() if k in own},
+                            what="3D mapping parameter")
+    planes = with_overrides(planes, {k: v for k, v in values.items() if k not in own},
+                            what="3D mapping parameter")
+    if frames.method not in PLANE_METHODS:
+        raise ValueError(f"method: expected one of {', '.join(PLANE_METHODS)}, "
+                         f"got {frames.method!r}")
+    for name, low in (("max_depth", 0.0), ("threshold", 0.0)):
+        v = getattr(frames if name in own else planes, name)
+        if not v > low:
+            raise ValueError(f"{name}: must be > {low:g}, got {v}")
+    for name, low in (("stride", 1), ("min_inliers", 3), ("max_planes", 1)):
+        v = getattr(frames if name in own else planes, name)
+        if v < low:
+            raise ValueError(f"{name}: must be >= {low}, got {v}")
+    return frames, planes
+
+
+def _check_params3d(v: dict) -> str | None:
+    try:
+        params3d(v)
     except ValueError as exc:
         return str(exc)
     return None
@@ -226,7 +283,7 @@ SCHEMA = Spec("record", fields={
         "rate3d": Spec("float", default=1.0, check=_positive),
         "odometry": Spec("map", default={}, values=Spec("any")),
         "params2d": Spec("map", default={}, values=Spec("any"), check=_check_params2d),
-        "params3d": Spec("map", default={}, values=Spec("any")),
+        "params3d": Spec("map", default={}, values=Spec("any"), check=_check_params3d),
         "lost_quality": Spec("float", default=0.2, check=_non_negative),
         "lost_after": Spec("int", default=8, check=_positive),
         "max_interp_gap": Spec("float", default=0.5, check=_positive),

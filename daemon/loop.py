@@ -25,6 +25,8 @@ from cgamap.mapping import planemap
 from cgamap.mapping.odometry import WheelGeometry, compose_pose2d, ticks_to_increment, wrap_angle
 from cgamap.mapping.posegraph import relative
 
+from .config import params3d, with_overrides
+
 log = logging.getLogger(__name__)
 
 
@@ -104,8 +106,6 @@ class Mapper2D:
 
     def __init__(self, mount: tuple[float, float, float] | None, params: dict):
         from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
-
-        from .config import with_overrides
 
         # a daemon runs for months: the pose graph keeps its newest nodes (params2d.max_nodes);
         # it never finishes: the finishing pass runs on demand (``optimize``), so the mapper's
@@ -324,7 +324,8 @@ class MappingLoop:
                 self.camera_mount = {"t_axis": tuple(head["axis_point"]),
                                      "t_eye": tuple(head["eye_offset"])}
         self.map3d_enabled = bool(m["map3d"])
-        self.params3d = dict(m["params3d"])
+        # checked when the config was loaded; built once, not per frame
+        self.frames3d, self.plane_params = params3d(m["params3d"])
         self.planes = PlaneMap()
         self.odom = PoseHistory()
         self.pantilt: collections.deque = collections.deque(maxlen=256)
@@ -668,7 +669,7 @@ class MappingLoop:
         try:
             from cgamap.drivers.stereo import frame_points_global, nearest_pantilt
             from cgamap.drivers.stereo_points import CameraMount
-            from cgamap.mapping.planes import PlaneParams, detect_planes
+            from cgamap.mapping.planes import detect_planes
         except ImportError as exc:
             log.warning("3D pipeline unavailable: %s", exc)
             self.map3d_enabled = False
@@ -678,14 +679,12 @@ class MappingLoop:
         pose = self.pose_at(frame.stamp_ns)
         mount = CameraMount.from_dict(self.camera_mount) if self.camera_mount else None
         pts = frame_points_global(frame, mount, tuple(pose),
-                                  max_depth=float(self.params3d.get("max_depth", 8.0)),
-                                  stride=int(self.params3d.get("stride", 4)))
+                                  max_depth=self.frames3d.max_depth,
+                                  stride=self.frames3d.stride)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts) < 200:
             return
-        known = {f.name for f in fields(PlaneParams)}
-        prm = PlaneParams(**{k: v for k, v in self.params3d.items() if k in known})
-        planes = detect_planes(pts, self.params3d.get("method", "ransac"), prm)
+        planes = detect_planes(pts, self.frames3d.method, self.plane_params)
         n = self.planes.integrate(planes)
         self.counts["frames"] += 1
         self.map_version += 1

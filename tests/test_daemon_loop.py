@@ -255,3 +255,24 @@ def test_a_push_the_wheels_did_not_see_is_counted_and_mapped_through(push):
     moved = relative(np.array(world.trajectory(ts[0])), np.array(world.trajectory(ts[-1])))
     err = relative(moved, loop.current_pose())  # the map's frame starts at the first scan
     assert np.hypot(*err[:2]) < 0.05 and abs(np.rad2deg(err[2])) < 0.5
+
+
+def test_3d_parameters_reach_the_plane_detector():
+    """params3d is checked when the config loads and built once: its frame keys (stride,
+    max_depth, method) and the plane detector's fields (max_planes) act on a frame."""
+    from cgamap.drivers.sim.stereo_render import SyntheticGrabber
+
+    frame = SyntheticGrabber("corridor", pose=(3.0, 0.0, 0.0), tilt=0.2, seed=1).grab()
+
+    def detected(**params3d) -> int:
+        loop = MappingLoop(config_mod.validate({"mapping": {"params3d": params3d}}),
+                           devices={})
+        loop.on_frame(frame)
+        return next(e["detected"] for e in loop.events if e["class"] == "planes")
+
+    assert detected(stride=4, max_depth=6.0) >= 3  # two walls and the floor at least
+    assert detected(stride=4, max_depth=6.0, max_planes=1) == 1
+    assert detected(stride=4, max_depth=6.0, method="hough", max_planes=2) == 2
+    loop = MappingLoop(config_mod.validate({"mapping": {"params3d": {"stride": 3}}}),
+                       devices={})
+    assert loop.frames3d.stride == 3 and loop.plane_params.threshold == 0.02
