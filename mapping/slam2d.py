@@ -268,9 +268,19 @@ class Mapper:
     def map(self, lmap: LineMap) -> None:
         """Adopt a map (e.g. loaded from a checkpoint): contributions from scans that are not
         this run's graph nodes are frozen (node -1), so they are neither moved nor matched
-        as an earlier visit, while their segments still serve for matching."""
-        if lmap is not self._map and len(lmap.c_node):
-            lmap.c_node = np.full_like(lmap.c_node, -1)
+        as an earlier visit, while their segments still serve for matching.  The segments'
+        scan stamps (``created``, ``last_seen``) shift to before this run's first node,
+        keeping their spacing: counted in another run's numbers they would lie in this
+        run's future (never aged, always "recent" to the duplicate check, and no drift
+        allowance for the free-space test until this run caught up)."""
+        if lmap is not self._map:
+            if len(lmap.c_node):
+                lmap.c_node = np.full_like(lmap.c_node, -1)
+            if len(lmap):
+                shift = int(lmap.last_seen.max()) + 1
+                if shift > 0:
+                    lmap.created = lmap.created - shift
+                    lmap.last_seen = lmap.last_seen - shift
         self._map = lmap
 
     @property

@@ -335,3 +335,32 @@ def test_affine_fit_names_a_stretch():
     assert got["stretch_axis_deg"] == pytest.approx(30.0, abs=0.1)
     rigid = affine_fit(apply_pose((1.0, 2.0, -0.3), ref), ref)
     assert rigid["stretch"] == pytest.approx([1.0, 1.0], abs=1e-9)
+
+
+def test_an_adopted_map_counts_its_scans_before_this_run():
+    """A map from another run (a checkpoint) numbers its scans in that run's terms: shifted
+    to before this run's first scan, its segments age, are compared for duplicates only
+    while recent, and get the free-space test's drift allowance from this run's start."""
+    from cgamap.mapping.linemap import dedupe
+    from cgamap.mapping.slam2d import Mapper
+
+    w = get_world("loop")
+    t = np.arange(0, 0.5 * w.path_length / w.speed, 0.7 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    first = Mapper(initial_pose=truth[0])
+    for k, p in enumerate(truth):
+        s = scan(w, p, n=180, sigma=0.01, seed=k)
+        first.step(s.ranges, s.angle_min, s.angle_increment, p)
+    seen, created = first.map.last_seen.copy(), first.map.created.copy()
+    assert seen.max() == len(truth) - 1
+    second = Mapper(initial_pose=truth[-1])
+    second.map = first.map
+    lm = second.map
+    assert lm.last_seen.max() == -1  # the newest sighting: just before this run
+    np.testing.assert_array_equal(seen - lm.last_seen, len(truth))  # spacing kept
+    np.testing.assert_array_equal(created - lm.created, len(truth))
+    # nothing in it is this run's: the duplicate check of this run's scans leaves it alone
+    before = len(lm)
+    assert dedupe(lm, second.params.map, since=0) == 0 and len(lm) == before
+    second.map = lm  # adopting it again shifts nothing
+    assert lm.last_seen.max() == -1
