@@ -28,7 +28,13 @@ class MapParams:
     merge_dist: float = 0.10       # end points within this of the map line
     merge_margin: float = 0.30     # sphere enlargement: pieces this far apart along a wall join
     age_scans: int = 12            # a segment seen once is judged after this many scans
-    age_min_length: float = 0.6    # ... and dropped if shorter than this
+    age_min_length: float = 0.6    # ... and dropped if shorter than this, ...
+    # ... or of any length when the robot went at most this far (odometry, m) in those
+    # scans: scanning densely, the next scans looked at it from nearly where it was seen,
+    # and a wall they did not see again was something moving (a person's or a cart's side
+    # laid down once per scan, 0.5-0.8 m long: a comb of them along its way).  Sparse logs
+    # (the Intel lab: 0.6 m or more in 12 scans, 6 m in the median) keep their glimpses
+    age_travel: float = 1.0
     # judged every this many scans: each drop re-indexes every contribution (thousands of
     # rows), and with 15 cm segments some short piece goes nearly every scan.  Intel seeds
     # 0-3: 0.064 -> 0.061 m mean ATE, the scans' median time down by about a tenth
@@ -452,13 +458,21 @@ def copies(a: np.ndarray, b: np.ndarray, dist: float = 0.03, angle_deg: float = 
     return found
 
 
-def age_out(lmap: LineMap, stamp: int, params: MapParams | None = None) -> int:
-    """Drop short segments seen only once long enough ago, and segments the laser has seen
-    through in ``params.clear.scans`` scans in a row (:mod:`.free_space`); returns how many
-    went."""
+def age_out(lmap: LineMap, stamp: int, params: MapParams | None = None,
+            travel: np.ndarray | None = None) -> int:
+    """Drop segments seen only once long enough ago that are short, or that the scans
+    since saw from nearly where they were seen (``travel``: odometry travel per scan stamp
+    up to ``stamp``; see ``MapParams.age_travel``), and segments the laser has seen through
+    in ``params.clear.scans`` scans in a row (:mod:`.free_space`); returns how many went."""
     params = params or MapParams()
-    drop = (lmap.n_obs <= 1) & (stamp - lmap.created > params.age_scans) & (
-        lmap.length < params.age_min_length)
+    once = (lmap.n_obs <= 1) & (stamp - lmap.created > params.age_scans)
+    short = lmap.length < params.age_min_length
+    if travel is not None and params.age_travel > 0 and len(travel) > stamp and once.any():
+        c = lmap.created
+        judged = np.clip(c + params.age_scans, 0, stamp)
+        # adopted segments (stamps before this run) have no travel here: length alone
+        short |= (c >= 0) & (travel[judged] - travel[np.clip(c, 0, stamp)] <= params.age_travel)
+    drop = once & short
     if params.clear.enabled:
         drop |= lmap.through >= params.clear.scans
     if drop.any():

@@ -445,7 +445,7 @@ class Mapper:
                                         len(self.map.c_seg) // P.map.age_rows):
             if P.map.clear.enabled:
                 self.cleared += int(np.count_nonzero(self.map.through >= P.map.clear.scans))
-            age_out(self.map, node, P.map)
+            age_out(self.map, node, P.map, self.travel.array())
             self.last_aged = node
         if node % P.map.dedupe_every == 0:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)

@@ -229,3 +229,26 @@ def test_components_of_a_small_graph():
     got = [member[group == g].tolist() for g in range(n)]
     assert got == [[2, 4, 7, 9], [3], [5, 8]]  # ascending, ordered by smallest node
     assert _components(np.zeros(0, int), np.zeros(0, int))[2] == 0
+
+
+def test_a_long_segment_seen_once_goes_when_the_next_scans_looked_from_nearby():
+    """Seen once, a segment of any length goes once the robot went at most age_travel in
+    the age_scans scans since (scanning densely, they saw its place and not it); after a
+    longer way it stays, as short ones stay only while young (MapParams.age_travel)."""
+    P = MapParams(age_scans=12, age_min_length=0.6, age_travel=1.0)
+    for step, kept in ((0.05, False), (0.5, True)):
+        m = LineMap()
+        integrate(m, _seg([0, 3], [1.5, 3]), 0)           # seen once, 1.5 m long
+        travel = step * np.arange(30)
+        for k in range(1, 30):
+            integrate(m, _seg([0, 0], [4, 0]), k)
+            age_out(m, k, P, travel[:k + 1])
+        assert (len(m) == 2) == kept, step
+    # without the travel (or a segment from before this run), length alone decides
+    m = LineMap()
+    integrate(m, _seg([0, 3], [1.5, 3]), 0)
+    m.created[:] = -5
+    for k in range(1, 30):
+        age_out(m, k, P, 0.05 * np.arange(k + 1))
+    assert len(m) == 1
+    assert age_out(m, 40, P) == 0 and len(m) == 1
