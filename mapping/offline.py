@@ -96,6 +96,8 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         "slips_recovered": mapper.slips,
         # map segments later scans saw through (people, carts, doors that moved on)
         "segments_cleared": mapper.cleared,
+        # scan segments not mapped: where a scan a moment earlier saw through (on the move)
+        "segments_moving": mapper.moved,
         "optimisations": mapper.optimizations,
         "line_adjustment": mapper.adjusted,
     }

@@ -31,6 +31,7 @@ from .free_space import update_streaks
 from .line_adjust import AdjustParams, Contributions, adjust, associate
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
+from .moving import MovingParams, moved_segments
 from .odometry import compose_pose2d as compose
 from .odometry import relative, step_calibration
 from .odometry import wrap_angle as wrap
@@ -185,6 +186,9 @@ class MapperParams:
     # heading error): found again from the walls' directions (:mod:`.slip`); such a step
     # teaches the odometry calibration nothing
     slip: SlipParams = field(default_factory=SlipParams)
+    # a scan's segments where a scan a moment earlier saw through are not mapped: people
+    # and carts on the move (:mod:`.moving`)
+    moving: MovingParams = field(default_factory=MovingParams)
     # after the neighbour pass: poses and the map's walls solved together (:mod:`.line_adjust`)
     adjust: AdjustParams = field(default_factory=AdjustParams)
     # online odometry calibration: heading drift per metre and translation scale, learnt from
@@ -234,6 +238,9 @@ class Mapper:
         self.calib_n = 0
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
         self.cleared = 0         # map segments the laser saw through, dropped (:mod:`.free_space`)
+        self.moved = 0           # scan segments not mapped: they had moved in (:mod:`.moving`)
+        # the last scans' ranges by node (the same chain only), for :mod:`.moving`
+        self._recent: dict[int, tuple[np.ndarray, float, float]] = {}
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
@@ -316,6 +323,8 @@ class Mapper:
             self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m, 0.0, 0.0))
             self.odo_cov.append(np.zeros((3, 3)))
             self.last_odom = odom_l
+            self._recent.clear()  # a new chain: the last scans' poses are not tied to it
+            self._remember(i, ranges, angle_min, angle_increment)
             self._merge(seg, i, None, abs(angle_increment))
             return StepResult(pose, len(seg), None)
         raw = relative(self.last_odom, odom_l)
@@ -380,11 +389,45 @@ class Mapper:
         # the correction already found the map segments near this scan (unless an
         # optimisation has just moved the map)
         near = corr.near if corr is not None and not optimized else None
+        n_seg = len(seg)
+        seg = self._without_movers(i, seg)
+        self._remember(i, ranges, angle_min, angle_increment)
         self._merge(seg, i, near, abs(angle_increment))
         pose = self.graph.poses[i].copy()
         if P.max_nodes and self.count > P.max_nodes:
             self.compact(max(P.max_nodes * 9 // 10, 1))
-        return StepResult(pose, len(seg), corr, loops, optimized)
+        return StepResult(pose, n_seg, corr, loops, optimized)
+
+    def _remember(self, i: int, ranges, angle_min: float, angle_increment: float) -> None:
+        P = self.params.moving
+        if not P.enabled:
+            return
+        self._recent[i] = (np.asarray(ranges, dtype=float), float(angle_min),
+                           float(angle_increment))
+        for j in [j for j in self._recent if j < i - P.gap_scans]:
+            del self._recent[j]
+
+    def _without_movers(self, i: int, seg: Segments) -> Segments:
+        """``seg`` (node i's, laser frame) without the segments that moved in since the
+        newest scan at least ``gap_travel`` m or ``gap_scans`` scans before it."""
+        P = self.params.moving
+        if not P.enabled or not len(seg) or not self._recent:
+            return seg
+        T = self.travel
+        j = next((j for j in range(i - 1, i - P.gap_scans - 1, -1)
+                  if j in self._recent and (T[i] - T[j] >= P.gap_travel
+                                            or j == i - P.gap_scans)), None)
+        if j is None:
+            return seg
+        x, y, th = self.graph.poses[i]
+        c, s_ = np.cos(th), np.sin(th)
+        R, t = np.array([[c, -s_], [s_, c]]), np.array([x, y])
+        moved = moved_segments(seg.a @ R.T + t, seg.b @ R.T + t, self.graph.poses[j],
+                               *self._recent[j], P)
+        if not moved.any():
+            return seg
+        self.moved += int(moved.sum())
+        return seg.subset(~moved)
 
     def compact(self, keep: int) -> int:
         """Keep the newest ``keep`` nodes of the graph; returns how many went.
@@ -424,6 +467,7 @@ class Mapper:
         self.last_opt -= cut
         self.last_loop -= cut
         self.last_aged -= cut
+        self._recent = {j - cut: v for j, v in self._recent.items() if j >= cut}
         self.finished_upto = max(self.finished_upto - cut, 0)
         return cut
 
