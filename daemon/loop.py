@@ -136,6 +136,11 @@ class Mapper2D:
         """Map segments the mapper dropped because later scans saw through them."""
         return self.m.cleared
 
+    @property
+    def moved(self) -> int:
+        """Scan segments the mapper left out: where a scan a moment earlier saw through."""
+        return self.m.moved
+
     def step(self, scan: LaserScan, odom) -> tuple[np.ndarray, float | None, int]:
         added = self.m.count + self.m.dropped
         try:
@@ -451,6 +456,7 @@ class MappingLoop:
             q, nseg = None, 0
         else:
             slips, cleared = self.mapper.slips, self.mapper.cleared
+            moved = self.mapper.moved
             self.pose, q, nseg = self.mapper.step(scan, odom)
             if self.mapper.slips > slips:
                 # the odometry put this scan beyond the correction's reach (wheel slip, a
@@ -459,6 +465,9 @@ class MappingLoop:
             if self.mapper.cleared > cleared:
                 # map segments later scans saw through (mapping.free_space)
                 self.counts["segments_cleared"] += self.mapper.cleared - cleared
+            if self.mapper.moved > moved:
+                # people and carts on the move, not mapped (mapping.moving)
+                self.counts["segments_moving"] += self.mapper.moved - moved
         self.last_scan_odom = odom
         self.pose_stamp_ns = scan.stamp_ns
         self.scan_poses.add(scan.stamp_ns, self.pose)

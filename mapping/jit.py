@@ -58,6 +58,10 @@ def warm_up() -> float:
     from .free_space import update_streaks
 
     update_streaks(lmap, np.zeros(2), seg.points, 2, beam_step=float(beams[1] - beams[0]))
+    from .moving import moved_segments
+
+    moved_segments(seg.a, seg.b, (0.0, 0.0, 0.0), ranges, float(beams[0]),
+                   float(beams[1] - beams[0]))
     # relocalisation's line-pair solve and hypothesis score (a trial or the daemon's first
     # relocalisation must not pay for their compilation)
     from .relocalize import DistanceField, _pair_translations, _score

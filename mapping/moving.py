@@ -19,19 +19,24 @@ at an object's edge is not compared with the background past it).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from .jit import kernel
 
 
 @dataclass(frozen=True)
 class MovingParams:
     enabled: bool = True
     # the earlier scan: the newest at least this far back in odometry travel (m), or this
-    # many scans back if nearer (turning on the spot).  A person at 1 m/s moves 0.6 m
-    # while a robot at 0.5 m/s drives 0.3 m
-    gap_travel: float = 0.3
-    gap_scans: int = 10
+    # many scans back if nearer (turning on the spot).  A person at 1 m/s moves 1.2 m
+    # while a robot at 0.5 m/s drives 0.6 m: more than its own size, so its sides seen
+    # end-on are not where it stood itself in the earlier scan (a cart 0.6 m long that
+    # moved 0.6 m has its trailing face where its leading face was)
+    gap_travel: float = 0.6
+    gap_scans: int = 20
     # a point moved in when the earlier beam at its bearing returned from this far beyond
     # it (m, plus this share of its range): the two poses' errors, a few cm and 0.2 deg
     margin: float = 0.2
@@ -42,34 +47,54 @@ class MovingParams:
     min_range: float = 0.2    # points nearer than this to the earlier laser say nothing
 
 
+@kernel
+def _moved(px, py, ox, oy, th, r, angle_min, angle_increment, full_circle, neighbours,
+           margin, margin_rel, min_range):
+    """Per point (px, py): whether the scan ``r`` from (ox, oy, th) saw through it."""
+    n, m = len(r), len(px)
+    out = np.zeros(m, np.bool_)
+    c, s = math.cos(th), math.sin(th)
+    for i in range(m):
+        dx, dy = px[i] - ox, py[i] - oy
+        x, y = c * dx + s * dy, -s * dx + c * dy
+        rho = math.sqrt(x * x + y * y)
+        if rho < min_range:
+            continue
+        k = int(round((math.atan2(y, x) - angle_min) / angle_increment))
+        if full_circle:
+            k %= n
+        elif k < 0 or k >= n:
+            continue
+        if not (r[k] > 0.0):  # no return (NaN) says nothing
+            continue
+        nearest = np.inf
+        for q in range(k - neighbours, k + neighbours + 1):
+            if full_circle:
+                q %= n
+            elif q < 0 or q >= n:
+                continue
+            if r[q] > 0.0 and r[q] < nearest:
+                nearest = r[q]
+        out[i] = nearest > rho + margin + margin_rel * rho
+    return out
+
+
 def moved_in(points: np.ndarray, pose, ranges: np.ndarray, angle_min: float,
              angle_increment: float, params: MovingParams | None = None) -> np.ndarray:
     """Per point (m, 2; map frame): whether the scan ``ranges`` taken from the laser pose
-    ``pose`` (x, y, theta; same frame) saw through its place, its beam at that bearing
-    (the nearest return of the beams around it) returning from beyond it by the margin."""
+    ``pose`` (x, y, theta; same frame) saw through its place: the beam at its bearing
+    returned, and it and its ``neighbours`` each side returned from beyond the point by
+    the margin (the nearest of their returns counts)."""
     P = params or MovingParams()
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
-    r = np.asarray(ranges, dtype=float)
+    r = np.ascontiguousarray(ranges, dtype=float)
     if not len(pts) or not len(r) or angle_increment == 0:
         return np.zeros(len(pts), bool)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    d = pts - np.asarray(pose[:2], dtype=float)
-    x, y = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-    rho = np.hypot(x, y)
-    beam = np.rint((np.arctan2(y, x) - angle_min) / angle_increment).astype(int)
-    n = len(r)
-    inside = (beam >= 0) & (beam < n) & (rho >= P.min_range)
-    if angle_increment * n >= 2 * np.pi - 1e-6:  # a full circle wraps
-        beam %= n
-        inside = rho >= P.min_range
-    # the nearest return among the beams around the bearing, whose own beam returned (no
-    # return says nothing: glass, black, beyond range)
-    valid = np.isfinite(r) & (r > 0)
-    k = P.neighbours
-    padded = np.concatenate([np.full(k, np.inf), np.where(valid, r, np.inf), np.full(k, np.inf)])
-    nearest = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1).min(axis=1)
-    b = np.clip(beam, 0, n - 1)
-    return inside & valid[b] & (nearest[b] > rho + P.margin + P.margin_rel * rho)
+    full = abs(angle_increment) * len(r) >= 2 * np.pi - 1e-6
+    return _moved(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                  float(pose[0]), float(pose[1]), float(pose[2]), r, float(angle_min),
+                  float(angle_increment), full, int(P.neighbours), P.margin, P.margin_rel,
+                  P.min_range)
 
 
 def moved_segments(a: np.ndarray, b: np.ndarray, pose, ranges: np.ndarray, angle_min: float,

@@ -409,16 +409,18 @@ class Mapper:
 
     def _without_movers(self, i: int, seg: Segments) -> Segments:
         """``seg`` (node i's, laser frame) without the segments that moved in since the
-        newest scan at least ``gap_travel`` m or ``gap_scans`` scans before it."""
+        newest scan at least ``gap_travel`` m or ``gap_scans`` scans before it (in a
+        chain's first scans, since its oldest)."""
         P = self.params.moving
         if not P.enabled or not len(seg) or not self._recent:
             return seg
         T = self.travel
-        j = next((j for j in range(i - 1, i - P.gap_scans - 1, -1)
-                  if j in self._recent and (T[i] - T[j] >= P.gap_travel
-                                            or j == i - P.gap_scans)), None)
-        if j is None:
+        earlier = [j for j in self._recent if j < i]
+        if not earlier:
             return seg
+        # the newest far enough back, else the oldest there is (a chain's first scans)
+        j = max((j for j in earlier if T[i] - T[j] >= P.gap_travel or j <= i - P.gap_scans),
+                default=min(earlier))
         x, y, th = self.graph.poses[i]
         c, s_ = np.cos(th), np.sin(th)
         R, t = np.array([[c, -s_], [s_, c]]), np.array([x, y])

@@ -99,6 +99,7 @@ class FakeMapper:
         self.reloc_calls = 0
         self.slips = 0
         self.cleared = 0
+        self.moved = 0
         self.p = np.zeros(3)
 
     def step(self, scan, odom):
@@ -255,6 +256,44 @@ def test_a_push_the_wheels_did_not_see_is_counted_and_mapped_through(push):
     moved = relative(np.array(world.trajectory(ts[0])), np.array(world.trajectory(ts[-1])))
     err = relative(moved, loop.current_pose())  # the map's frame starts at the first scan
     assert np.hypot(*err[:2]) < 0.05 and abs(np.rad2deg(err[2])) < 0.5
+
+
+def test_people_on_the_move_are_counted_not_mapped():
+    """A cart crossing 3 m ahead of the robot, to and fro: the daemon's status counts the
+    sightings the mapper left out (segments_moving), and the map has none of them off the
+    world's walls."""
+    from cgamap.drivers.sim.world import Mover
+    from cgamap.mapping.matching import segment_distances
+
+    loop = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0), devices={})
+    world = get_world("loop")
+    ts = np.arange(60) * 0.1 / world.speed
+    x, y, th = world.trajectory(ts[30])
+    ahead = np.array([x + 3 * np.cos(th), y + 3 * np.sin(th)])
+    fwd, side = np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
+    way = (tuple(ahead - 1.5 * side), tuple(ahead + 1.5 * side))
+    world.movers.append(Mover(way, speed=1.0, size=(0.6, 0.8)))
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 361)
+    for i, t in enumerate(ts):
+        pose = np.array(world.trajectory(t), dtype=float)
+        r = world.raycast(*pose, angles, 30.0, t=t)
+        ns = int(t * 1e9)
+        loop.handle("base", OdometryPose(stamp_ns=ns, x=pose[0], y=pose[1], theta=pose[2]))
+        loop.handle("laser", LaserScan(seq=i, stamp_ns=ns, angle_min=float(angles[0]),
+                                       angle_increment=float(angles[1] - angles[0]),
+                                       ranges=np.where(np.isfinite(r), r, np.nan)))
+        loop.handle("base", OdometryPose(stamp_ns=ns + 1, x=pose[0], y=pose[1], theta=pose[2]))
+        loop.process(odometry_live=False)
+    assert loop.counts["scans"] == 60 and loop.counts["segments_moving"] >= 5
+    seg = loop.mapper.segments()  # in the map's frame: its first scan's pose is the origin
+    T = np.array(world.trajectory(ts[0]), dtype=float)
+    c, s = np.cos(T[2]), np.sin(T[2])
+    mid = 0.5 * (seg[:, :2] + seg[:, 2:]) @ np.array([[c, s], [-s, c]]) + T[:2]
+    d = mid - ahead
+    W = world.segments
+    off = segment_distances(mid, W[:, :2], W[:, 2:]).min(axis=1) > 0.25
+    bad = off & (np.abs(d @ side) < 1.6) & (np.abs(d @ fwd) < 0.5)
+    assert len(seg) and not bad.any()
 
 
 def test_3d_parameters_reach_the_plane_detector():
