@@ -414,7 +414,7 @@ class Mapper:
         P = self.params.moving
         if not P.enabled or not len(seg) or not self._recent:
             return seg
-        T = self.travel
+        T = self.travel.array()
         earlier = [j for j in self._recent if j < i]
         if not earlier:
             return seg
