@@ -65,7 +65,7 @@ def _moved(px, py, ox, oy, th, r, angle_min, angle_increment, full_circle, neigh
             k %= n
         elif k < 0 or k >= n:
             continue
-        if not (r[k] > 0.0):  # no return (NaN) says nothing
+        if not (0.0 < r[k] < np.inf):  # no return (NaN, inf, 0) says nothing
             continue
         nearest = np.inf
         for q in range(k - neighbours, k + neighbours + 1):

@@ -41,8 +41,9 @@ def test_points_where_the_earlier_beams_went_through_moved_in():
 def test_no_return_and_edges_say_nothing():
     r = wall_at(6.0)
     k = 90  # straight ahead
-    r[k] = np.nan                      # a beam that returned nothing (glass, black)
-    assert not moved_in([[3.0, 0.0]], (0, 0, 0), r, AMIN, INC)[0]
+    for nothing in (np.nan, np.inf, 0.0):  # a beam that returned nothing (glass, black)
+        r[k] = nothing
+        assert not moved_in([[3.0, 0.0]], (0, 0, 0), r, AMIN, INC)[0]
     # a point at the edge of a box: its own beam returned from the wall behind, the next
     # one from the box, 3 m: the nearest return around the bearing counts
     r = wall_at(6.0)
@@ -96,3 +97,15 @@ def test_a_walking_person_is_not_mapped_and_a_standing_one_is(enabled):
     mid = 0.5 * (m.map.a + m.map.b)
     assert ((np.abs(mid[:, 1] - 0.5) < 0.05) & (np.abs(mid[:, 0] - 2.3) < 0.2)).any()
     assert m.moved == 0
+
+
+def test_a_full_circle_scan_wraps():
+    """A 360-beam scan of a room 6 m round: its last beams and its first are neighbours,
+    and a point behind the laser is in its field of view."""
+    n = 360
+    r = np.full(n, 6.0)
+    amin, inc = -np.pi, 2 * np.pi / n
+    pts = [[-3.0, 0.0], [-3.0, 0.01], [-6.0, 0.0], [0.0, -3.0]]
+    assert moved_in(pts, (0, 0, 0), r, amin, inc).tolist() == [True, True, False, True]
+    r[358] = 3.0  # beam 358 sees a box at 3 m: two beams from beam 0, across the wrap
+    assert not moved_in([[-3.0, -0.001]], (0, 0, 0), r, amin, inc)[0]
