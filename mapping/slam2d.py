@@ -402,7 +402,8 @@ class Mapper:
         P = self.params.moving
         if not P.enabled:
             return
-        self._recent[i] = (np.asarray(ranges, dtype=float), float(angle_min),
+        # a copy: a driver may fill the same buffer again
+        self._recent[i] = (np.array(ranges, dtype=float), float(angle_min),
                            float(angle_increment))
         for j in [j for j in self._recent if j < i - P.gap_scans]:
             del self._recent[j]
@@ -421,11 +422,8 @@ class Mapper:
         # the newest far enough back, else the oldest there is (a chain's first scans)
         j = max((j for j in earlier if T[i] - T[j] >= P.gap_travel or j <= i - P.gap_scans),
                 default=min(earlier))
-        x, y, th = self.graph.poses[i]
-        c, s_ = np.cos(th), np.sin(th)
-        R, t = np.array([[c, -s_], [s_, c]]), np.array([x, y])
-        moved = moved_segments(seg.a @ R.T + t, seg.b @ R.T + t, self.graph.poses[j],
-                               *self._recent[j], P)
+        g = seg.transformed(*self.graph.poses[i])
+        moved = moved_segments(g.a, g.b, self.graph.poses[j], *self._recent[j], P)
         if not moved.any():
             return seg
         self.moved += int(moved.sum())
