@@ -191,14 +191,14 @@ def seen_through(a: np.ndarray, b: np.ndarray, origin, points: np.ndarray,
 
 def update_streaks(lmap, origin, points: np.ndarray, stamp: int,
                    params: ClearParams | None = None, travel: np.ndarray | None = None,
-                   tied: int = -1, beam_step: float | None = None) -> int:
+                   tied: int | np.ndarray = -1, beam_step: float | None = None) -> int:
     """Test the map segments within the scan's reach against one scan (``points`` (m, 2) in
     the map frame, seen from ``origin``, ``beam_step`` rad apart) and update their streaks
     in place: one more for a segment seen through over ``cover`` of it, none for one hit or
     fused at ``stamp``.  ``travel`` (per scan stamp up to ``stamp``: odometry travel so far)
-    and ``tied`` (the stamp of the last loop closure) give each segment its drift
-    allowance: ``drift_per_m`` times the travel since the later of its last sighting and
-    ``tied``.  Returns how many segments were seen through."""
+    and ``tied`` (the stamp of the last loop closure; or per map segment) give each
+    segment its drift allowance: ``drift_per_m`` times the travel since the later of its
+    last sighting and ``tied``.  Returns how many segments were seen through."""
     P = params or ClearParams()
     if not len(lmap) or not len(points):
         return 0
@@ -215,7 +215,8 @@ def update_streaks(lmap, origin, points: np.ndarray, stamp: int,
         return 0
     seen = lmap.last_seen[near]
     if travel is not None and len(travel) > stamp:
-        since = np.clip(np.maximum(seen, tied), 0, stamp)
+        tie = tied[near] if np.ndim(tied) else tied
+        since = np.clip(np.maximum(seen, tie), 0, stamp)
         drift = P.drift_per_m * (travel[stamp] - travel[since])
     else:
         drift = np.zeros(len(near))

@@ -241,6 +241,9 @@ class Mapper:
         self.moved = 0           # scan segments not mapped: they had moved in (:mod:`.moving`)
         # the last scans' ranges by node (the same chain only), for :mod:`.moving`
         self._recent: dict[int, tuple[np.ndarray, float, float]] = {}
+        # the last scan whose correction matched mostly frozen map segments (created before
+        # this run's nodes): the free-space test's tie for them (:mod:`.free_space`)
+        self.frozen_tie = -10 ** 9
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
@@ -348,6 +351,8 @@ class Mapper:
                     corr = slipped
                     self.slips += 1
             pose = corr.pose
+            if slipped is None:
+                self._tie_frozen(len(self.graph.poses), seg, corr)
             # a slip's pose owes nothing to the prediction
             cov = np.zeros((3, 3)) if slipped is not None else corr.cov
             if (slipped is None and corr.matched_fraction >= P.calib_min_fraction
@@ -397,6 +402,17 @@ class Mapper:
         if P.max_nodes and self.count > P.max_nodes:
             self.compact(max(P.max_nodes * 9 // 10, 1))
         return StepResult(pose, n_seg, corr, loops, optimized)
+
+    def _tie_frozen(self, i: int, seg: Segments, corr: Correction) -> None:
+        """Scan i is tied to the frozen segments when its correction matched at least
+        ``calib_min_fraction`` of its length to them."""
+        j = corr.matches
+        if corr.total_length <= 0 or len(j) != len(seg) or not (j >= 0).any():
+            return
+        frozen = np.zeros(len(j), bool)
+        frozen[j >= 0] = self.map.created[j[j >= 0]] < 0
+        if seg.length[frozen].sum() >= self.params.calib_min_fraction * corr.total_length:
+            self.frozen_tie = i
 
     def _remember(self, i: int, ranges, angle_min: float, angle_increment: float) -> None:
         P = self.params.moving
@@ -468,6 +484,7 @@ class Mapper:
         self.last_loop -= cut
         self.last_aged -= cut
         self._recent = {j - cut: v for j, v in self._recent.items() if j >= cut}
+        self.frozen_tie -= cut
         self.finished_upto = max(self.finished_upto - cut, 0)
         return cut
 
@@ -480,11 +497,14 @@ class Mapper:
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
         if P.map.clear.enabled and node % max(P.map.clear.every, 1) == 0:
+            # a closure ties the laser to the old map, once a solve applied it if it
+            # disagreed (pending); a scan matched well to the frozen segments (an adopted
+            # map's, or those of nodes compacted away) ties it to them: they do not move
+            tie = self.last_opt if self.pending else self.last_loop
+            tied = (np.where(self.map.created < 0, max(tie, self.frozen_tie), tie)
+                    if self.frozen_tie > tie else tie)
             update_streaks(self.map, self.graph.poses[node][:2], seg_g.points, node,
-                           P.map.clear, self.travel.array(),
-                           # a closure ties the laser to the old map, once a solve applied
-                           # it if it disagreed (pending)
-                           self.last_opt if self.pending else self.last_loop, beam_step)
+                           P.map.clear, self.travel.array(), tied, beam_step)
         if node - self.last_aged >= max(P.map.age_every,
                                         len(self.map.c_seg) // P.map.age_rows):
             if P.map.clear.enabled:
