@@ -441,8 +441,9 @@ class Mapper:
         # the newest far enough back, else the oldest there is (a chain's first scans)
         j = max((j for j in earlier if T[i] - T[j] >= P.gap_travel or j <= i - P.gap_scans),
                 default=min(earlier))
-        g = seg.transformed(*self.graph.poses[i])
-        moved = moved_segments(g.a, g.b, self.graph.poses[j], *self._recent[j], P)
+        pose = self.graph.poses[i]
+        moved = moved_segments(_move(seg.a, pose), _move(seg.b, pose), self.graph.poses[j],
+                               *self._recent[j], P)
         if not moved.any():
             return seg
         self.moved += int(moved.sum())
