@@ -252,26 +252,3 @@ def test_a_long_segment_seen_once_goes_when_the_next_scans_looked_from_nearby():
         age_out(m, k, P, 0.05 * np.arange(k + 1))
     assert len(m) == 1
     assert age_out(m, 40, P) == 0 and len(m) == 1
-
-
-def test_a_segment_seen_only_by_a_few_of_the_scans_just_after_it_goes():
-    """Seen at most age_seen times, all within the age_scans scans after it appeared, from
-    nearly one place (age_travel, age_turn): dropped.  Seen by more of them, seen again
-    later, or with the robot turning away meanwhile: kept."""
-    P = MapParams(age_scans=12, age_travel=1.0, age_seen=3, age_turn=0.5)
-
-    def run(sightings, turn_per_scan=0.0) -> bool:
-        m = LineMap()
-        travel, turned = 0.05 * np.arange(40), turn_per_scan * np.arange(40)
-        for k in range(40):
-            integrate(m, _seg([0, 0], [4, 0]), k)
-            if k in sightings:
-                integrate(m, _seg([0, 3], [1.5, 3]), k)
-            age_out(m, k, P, travel[:k + 1], turned[:k + 1])
-        return len(m) == 2
-
-    assert not run({0, 1, 2})
-    assert run({0, 1, 2, 3})                   # four times: a wall
-    assert run({0, 1, 30})                     # seen again later
-    assert run({0, 1, 2}, turn_per_scan=0.1)   # 1.2 rad in 12 scans: it left the view
-    assert not run({0, 1, 2}, turn_per_scan=0.03)  # 0.36 rad: still in view
