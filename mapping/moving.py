@@ -8,13 +8,14 @@ that moves across itself leaves a copy per scan.  The free-space test
 
 Before a scan is merged, its segments are compared with a scan taken a moment earlier
 (``MovingParams.gap_travel`` m of odometry or ``gap_scans`` scans back, whichever is
-nearer; in a chain's first scans, its oldest), both placed by their corrected poses: a segment whose points lie, for a good
-share of it, in front of what the earlier scan's beams returned (that beam went through
-the place, so nothing stood there then) has moved in since, and is left out of the map.
-The scan's pose correction still used it, and its beams still count for the free-space
-test.  A cart that stops is mapped once it stands; beams that returned nothing say
-nothing, and the earlier beam with the nearest return around the bearing counts (a point
-at an object's edge is not compared with the background past it).
+nearer; in a chain's first scans, its oldest), both placed by their corrected poses: a
+segment whose points lie, for a good share of it, in front of what the earlier scan's
+beams returned (that beam went through the place, so nothing stood there then) has moved
+in since, and is left out of the map.  The scan's pose correction still used it, and its
+beams still count for the free-space test.  A cart that stops is mapped once it stands;
+beams that returned nothing say nothing, and the earlier beam with the nearest return
+around the bearing counts (a point at an object's edge is not compared with the
+background past it).
 """
 
 from __future__ import annotations
