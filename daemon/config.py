@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -87,7 +87,7 @@ def with_overrides(default, values: dict, where: str = "", what: str = "2D mappe
     dataclasses from nested mappings (``{"map": {"clear": {"enabled": False}}}``), each
     value of its default's type (lists for tuples).  ValueError naming the dotted field for
     an unknown name or a wrong type: a typo is an error, not ignored."""
-    from dataclasses import MISSING, fields, is_dataclass, replace
+    from dataclasses import MISSING, is_dataclass, replace
 
     known = {}
     for f in fields(default):
@@ -157,21 +157,17 @@ PLANE_METHODS = ("ransac", "hough")
 def params3d(values: dict):
     """``mapping.params3d`` as (:class:`Frames3D`, ``PlaneParams``).  ValueError naming the
     key for an unknown name, a wrong type or a value out of range."""
-    from dataclasses import fields
-
     from cgamap.mapping.planes import PlaneParams
 
     own = {f.name for f in fields(Frames3D)}
-    frames = Frames3D()
-    planes = PlaneParams()
     known = {f.name for f in fields(PlaneParams)} | own
     unknown = sorted(k for k in values if k not in known)
     if unknown:
         raise ValueError(f"unknown 3D mapping parameter {unknown[0]!r} (one of "
                          f"{', '.join(sorted(known))})")
-    frames = with_overrides(frames, {k: v for k, v in values.items() if k in own},
+    frames = with_overrides(Frames3D(), {k: v for k, v in values.items() if k in own},
                             what="3D mapping parameter")
-    planes = with_overrides(planes, {k: v for k, v in values.items() if k not in own},
+    planes = with_overrides(PlaneParams(), {k: v for k, v in values.items() if k not in own},
                             what="3D mapping parameter")
     if frames.method not in PLANE_METHODS:
         raise ValueError(f"method: expected one of {', '.join(PLANE_METHODS)}, "
@@ -411,8 +407,6 @@ def _check_params(key: str, dev: dict) -> None:
     """A device's free ``params`` against its driver: the drivers drop unknown keys or fail
     only when the daemon opens the device (and the supervisor retries that forever), so a
     typo (``wheel_radus``) or a bad value is reported here, before the daemon starts."""
-    from dataclasses import fields
-
     params, model = dev["params"], dev["model"]
     try:
         if dev["role"] == "laser" and model in ("lms2xx", "hokuyo", "cola"):

@@ -244,6 +244,9 @@ class Mapper:
         # the last scan whose correction matched mostly frozen map segments (created before
         # this run's nodes): the free-space test's tie for them (:mod:`.free_space`)
         self.frozen_tie = -10 ** 9
+        # whether the map may hold frozen segments at all (set on adopting a map and on
+        # compacting): most runs have none, and then no scan need look for them
+        self._frozen = False
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
@@ -287,6 +290,7 @@ class Mapper:
             if len(lmap.c_node):
                 lmap.c_node = np.full_like(lmap.c_node, -1)
             if len(lmap):
+                self._frozen = True
                 shift = int(lmap.last_seen.max()) + 1
                 if shift > 0:
                     lmap.created = lmap.created - shift
@@ -407,7 +411,8 @@ class Mapper:
         """Scan i is tied to the frozen segments when its correction matched at least
         ``calib_min_fraction`` of its length to them."""
         j = corr.matches
-        if corr.total_length <= 0 or len(j) != len(seg) or not (j >= 0).any():
+        if (not self._frozen or corr.total_length <= 0 or len(j) != len(seg)
+                or not (j >= 0).any()):
             return
         frozen = np.zeros(len(j), bool)
         frozen[j >= 0] = self.map.created[j[j >= 0]] < 0
@@ -457,6 +462,7 @@ class Mapper:
         cut = self.count - keep
         if cut <= 0:
             return 0
+        self._frozen = True  # the dropped scans' segments stay, frozen
         g, m = self.graph, self.map
         live = m.c_node >= cut
         for name in ("c_seg", "c_node", "c_n", "c_cent", "c_scat", "c_a", "c_b"):
