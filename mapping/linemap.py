@@ -35,6 +35,14 @@ class MapParams:
     # laid down once per scan, 0.5-0.8 m long: a comb of them along its way).  Sparse logs
     # (the Intel lab: 0.6 m or more in 12 scans, 6 m in the median) keep their glimpses
     age_travel: float = 1.0
+    # ... and so is one seen at most this many times in those scans and never after: a
+    # wall is seen by nearly every one of them (the copies of a side fused in twos and
+    # threes; in the empty hall at 10 Hz, fragments of walls seen better by others)
+    age_seen: int = 3
+    # ... unless the robot also turned more than this (rad, odometry) in those scans: a
+    # turn on the spot takes what it saw at one side out of view (Intel's sparse scans
+    # turn 0.3-0.5 rad each there)
+    age_turn: float = 0.5
     # judged every this many scans: each drop re-indexes every contribution (thousands of
     # rows), and with 15 cm segments some short piece goes nearly every scan.  Intel seeds
     # 0-3: 0.064 -> 0.061 m mean ATE, the scans' median time down by about a tenth
@@ -459,20 +467,37 @@ def copies(a: np.ndarray, b: np.ndarray, dist: float = 0.03, angle_deg: float = 
 
 
 def age_out(lmap: LineMap, stamp: int, params: MapParams | None = None,
-            travel: np.ndarray | None = None) -> int:
-    """Drop segments seen only once long enough ago that are short, or that the scans
-    since saw from nearly where they were seen (``travel``: odometry travel per scan stamp
-    up to ``stamp``; see ``MapParams.age_travel``), and segments the laser has seen through
-    in ``params.clear.scans`` scans in a row (:mod:`.free_space`); returns how many went."""
+            travel: np.ndarray | None = None, turned: np.ndarray | None = None,
+            retired: list | None = None) -> int:
+    """Drop segments seen only once long enough ago that are short; segments seen only
+    in the few scans after they appeared (``age_seen`` times at most) when those scans
+    looked from nearly where they were seen (``travel``: odometry travel per scan stamp up
+    to ``stamp``, and ``turned``, its turn, if given; see ``MapParams.age_travel``); and
+    segments the laser has seen through in ``params.clear.scans`` scans in a row
+    (:mod:`.free_space`); returns how many went.  With ``retired``, the contributions
+    (node, end a, end b) of the segments dropped for being seen only in those few scans are
+    appended to it as one tuple of arrays: they were seen, and a loop closure's submap of
+    that place still wants them."""
     params = params or MapParams()
-    once = (lmap.n_obs <= 1) & (stamp - lmap.created > params.age_scans)
-    short = lmap.length < params.age_min_length
-    if travel is not None and params.age_travel > 0 and len(travel) > stamp and once.any():
-        c = lmap.created
-        judged = np.clip(c + params.age_scans, 0, stamp)
-        # adopted segments (stamps before this run) have no travel here: length alone
-        short |= (c >= 0) & (travel[judged] - travel[np.clip(c, 0, stamp)] <= params.age_travel)
-    drop = once & short
+    c = lmap.created
+    judged = stamp - c > params.age_scans
+    drop = judged & (lmap.n_obs <= 1) & (lmap.length < params.age_min_length)
+    # seen at most age_seen times, all in its first age_scans scans; adopted segments
+    # (stamps before this run) have no travel here: length alone
+    few = judged & (c >= 0) & (lmap.n_obs <= max(params.age_seen, 1)) & (
+        lmap.last_seen <= c + params.age_scans)
+    if travel is not None and params.age_travel > 0 and len(travel) > stamp and few.any():
+        end, start = np.clip(c + params.age_scans, 0, stamp), np.clip(c, 0, stamp)
+        near = travel[end] - travel[start] <= params.age_travel
+        if turned is not None and len(turned) > stamp:
+            near &= turned[end] - turned[start] <= params.age_turn
+        glimpse = few & near & ~drop
+        if params.clear.enabled:
+            glimpse &= lmap.through < params.clear.scans  # seen through: gone, not retired
+        if retired is not None and glimpse.any() and len(lmap.c_seg):
+            rows = glimpse[lmap.c_seg]
+            retired.append((lmap.c_node[rows], lmap.c_a[rows], lmap.c_b[rows]))
+        drop |= glimpse
     if params.clear.enabled:
         drop |= lmap.through >= params.clear.scans
     if drop.any():

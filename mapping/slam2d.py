@@ -227,6 +227,7 @@ class Mapper:
         self.last_aged = -10 ** 9  # the node the map's short segments were last judged at
         # odometry distance from the start, per node (an array: each scan searches it)
         self.travel = Column((), float)
+        self.turned = Column((), float)  # ... and odometry turn (rad, absolute) from the start
         # per node: its raw odometry step (x, y, theta), the calibration (scale, drift) it
         # was predicted with, which the finishing pass re-estimates (:func:`_recalibrate`),
         # the step's length for the prior and the heading it was predicted from ...
@@ -250,6 +251,10 @@ class Mapper:
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
+        # contributions (node, a, b) of segments aged out as glimpses, by node: a closure's
+        # submap of that place still has them (aging judges what the map keeps for good;
+        # a dense run's short-lived pieces were all a closure had of its loop's start)
+        self._retired = (np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)))
         # the finishing pass needs each node's own segments: kept when the pass is enabled,
         # or when the owner asks (the daemon runs the pass on demand, :meth:`finishing_job`)
         self.keep_scans = self.params.neighbours.enabled or (
@@ -327,6 +332,7 @@ class Mapper:
             if i and i not in self.anchors:
                 self.anchors.append(i)
             self.travel.append(self.travel[-1] if len(self.travel) else 0.0)
+            self.turned.append(self.turned[-1] if len(self.turned) else 0.0)
             self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m, 0.0, 0.0))
             self.odo_cov.append(np.zeros((3, 3)))
             self.last_odom = odom_l
@@ -368,6 +374,7 @@ class Mapper:
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
         self.travel.append(self.travel[-1] + d_odo)
+        self.turned.append(self.turned[-1] + abs(float(raw[2])))
         self.odo_step.append((*raw, scale, drift, step, prev[2]))
         self.odo_cov.append(cov if cov is not None else
                             np.diag(1.0 / P.correction.prior_information(step)))
@@ -406,6 +413,13 @@ class Mapper:
         if P.max_nodes and self.count > P.max_nodes:
             self.compact(max(P.max_nodes * 9 // 10, 1))
         return StepResult(pose, n_seg, corr, loops, optimized)
+
+    def _retire(self, got: list) -> None:
+        """Keep the contributions of segments aged out as glimpses (``MapParams.age_seen``)
+        for the loop closures' submaps, in node order."""
+        nodes, a, b = (np.concatenate([r[k] for r in (self._retired, *got)]) for k in range(3))
+        order = np.argsort(nodes, kind="stable")
+        self._retired = (nodes[order], a[order], b[order])
 
     def _tie_frozen(self, i: int, seg: Segments, corr: Correction) -> None:
         """Scan i is tied to the frozen segments when its correction matched at least
@@ -478,6 +492,7 @@ class Mapper:
             setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = Column((), float, self.travel[cut:])
+        self.turned = Column((), float, self.turned[cut:])
         self.odo_step = Column((7,), float, self.odo_step[cut:])
         self.odo_cov = Column((3, 3), float, self.odo_cov[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
@@ -491,6 +506,8 @@ class Mapper:
         self.last_loop -= cut
         self.last_aged -= cut
         self._recent = {j - cut: v for j, v in self._recent.items() if j >= cut}
+        rn, ra, rb = self._retired
+        self._retired = (rn[rn >= cut] - cut, ra[rn >= cut], rb[rn >= cut])
         self.frozen_tie -= cut
         self.finished_upto = max(self.finished_upto - cut, 0)
         return cut
@@ -516,7 +533,10 @@ class Mapper:
                                         len(self.map.c_seg) // P.map.age_rows):
             if P.map.clear.enabled:
                 self.cleared += int(np.count_nonzero(self.map.through >= P.map.clear.scans))
-            age_out(self.map, node, P.map, self.travel.array())
+            got: list = []
+            age_out(self.map, node, P.map, self.travel.array(), self.turned.array(), got)
+            if got:
+                self._retire(got)
             self.last_aged = node
         if node % P.map.dedupe_every == 0:
             dedupe(self.map, P.map, since=node - P.map.dedupe_every)
@@ -641,16 +661,24 @@ class Mapper:
         # and adopted maps' -1 keep it): the window is a slice, found in log time (a mask
         # over a long run's 400 000 contributions took ~1.5 ms a try)
         c_node = self.map.c_node
-        sel = slice(int(np.searchsorted(c_node, max(j - window, 0), side="left")),
-                    int(np.searchsorted(c_node, min(j + window, last), side="right")))
-        if sel.stop - sel.start < 3:
+        lo, hi = max(j - window, 0), min(j + window, last)
+        sel = slice(int(np.searchsorted(c_node, lo, side="left")),
+                    int(np.searchsorted(c_node, hi, side="right")))
+        nodes, ca, cb = c_node[sel], self.map.c_a[sel], self.map.c_b[sel]
+        rn, ra, rb = self._retired
+        if len(rn):
+            r = slice(int(np.searchsorted(rn, lo, side="left")),
+                      int(np.searchsorted(rn, hi, side="right")))
+            if r.stop > r.start:
+                nodes = np.concatenate([nodes, rn[r]])
+                ca, cb = np.concatenate([ca, ra[r]]), np.concatenate([cb, rb[r]])
+        if len(nodes) < 3:
             return None
-        nodes = c_node[sel]
         rel = relative(X[j], X[nodes])
         c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
         R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-        return LineMap(np.einsum("kij,kj->ki", R, self.map.c_a[sel]) + rel[:, :2],
-                       np.einsum("kij,kj->ki", R, self.map.c_b[sel]) + rel[:, :2])
+        return LineMap(np.einsum("kij,kj->ki", R, ca) + rel[:, :2],
+                       np.einsum("kij,kj->ki", R, cb) + rel[:, :2])
 
     def _guess_rivals(self, seg: Segments, sub: LineMap, guess: np.ndarray, corr: Correction,
                       LP: LoopParams, travel: float) -> bool:

@@ -252,3 +252,67 @@ def test_a_long_segment_seen_once_goes_when_the_next_scans_looked_from_nearby():
         age_out(m, k, P, 0.05 * np.arange(k + 1))
     assert len(m) == 1
     assert age_out(m, 40, P) == 0 and len(m) == 1
+
+
+def test_a_segment_seen_only_by_a_few_of_the_scans_just_after_it_goes():
+    """Seen at most age_seen times, all within the age_scans scans after it appeared, from
+    nearly one place (age_travel, age_turn): dropped.  Seen by more of them, seen again
+    later, or with the robot turning away meanwhile: kept."""
+    P = MapParams(age_scans=12, age_travel=1.0, age_seen=3, age_turn=0.5)
+
+    def run(sightings, turn_per_scan=0.0) -> bool:
+        m = LineMap()
+        travel, turned = 0.05 * np.arange(40), turn_per_scan * np.arange(40)
+        for k in range(40):
+            integrate(m, _seg([0, 0], [4, 0]), k)
+            if k in sightings:
+                integrate(m, _seg([0, 3], [1.5, 3]), k)
+            age_out(m, k, P, travel[:k + 1], turned[:k + 1])
+        return len(m) == 2
+
+    assert not run({0, 1, 2})
+    assert run({0, 1, 2, 3})                   # four times: a wall
+    assert run({0, 1, 30})                     # seen again later
+    assert run({0, 1, 2}, turn_per_scan=0.1)   # 1.2 rad in 12 scans: it left the view
+    assert not run({0, 1, 2}, turn_per_scan=0.03)  # 0.36 rad: still in view
+
+
+def test_a_glimpse_aged_out_hands_its_contributions_to_retired():
+    """The contributions of a segment dropped as a glimpse (seen only by the few scans just
+    after it appeared) go to ``retired``, for a loop closure's submap; those of a short
+    piece seen once, and of one the laser saw through, do not."""
+    P = MapParams(age_scans=12, age_travel=1.0, age_seen=3, age_turn=0.5)
+    m, retired = LineMap(), []
+    wall = _seg([0, 0], [4, 0])
+    for k in range(20):
+        integrate(m, wall, k, P, seg_l=wall, node=k)
+        if k in (1, 2, 3):
+            # the same 1.5 m glimpse three times, in the laser frame shifted by the node
+            g = _seg([0, 3], [1.5, 3])
+            integrate(m, g, k, P, seg_l=_seg([k, 3], [k + 1.5, 3]), node=k)
+        age_out(m, k, P, 0.05 * np.arange(k + 1), np.zeros(k + 1), retired)
+    assert len(m) == 1
+    assert len(retired) == 1
+    nodes, a, b = retired[0]
+    np.testing.assert_array_equal(nodes, [1, 2, 3])
+    np.testing.assert_allclose(a, [[1, 3], [2, 3], [3, 3]])
+    np.testing.assert_allclose(b, [[2.5, 3], [3.5, 3], [4.5, 3]])
+    # a seen-once short piece goes as before, and is not retired
+    short, retired = LineMap(), []
+    for k in range(20):
+        integrate(short, wall, k, P, seg_l=wall, node=k)
+        if k == 1:
+            integrate(short, _seg([0, 3], [0.3, 3]), k, P, seg_l=_seg([0, 3], [0.3, 3]), node=k)
+        age_out(short, k, P, 0.05 * np.arange(k + 1), np.zeros(k + 1), retired)
+    assert len(short) == 1 and retired == []
+    # a glimpse the laser also saw through has gone from the world: not retired
+    seen_through, retired = LineMap(), []
+    for k in range(20):
+        integrate(seen_through, wall, k, P, seg_l=wall, node=k)
+        if k in (1, 2, 3):
+            g = _seg([0, 3], [1.5, 3])
+            integrate(seen_through, g, k, P, seg_l=g, node=k)
+        if k == 14:  # judged from 14 on (1 + age_scans), seen through by then
+            seen_through.through[seen_through.length < 2] = P.clear.scans
+        age_out(seen_through, k, P, 0.05 * np.arange(k + 1), np.zeros(k + 1), retired)
+    assert len(seen_through) == 1 and retired == []
