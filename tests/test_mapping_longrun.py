@@ -111,3 +111,22 @@ def test_a_passer_by_seen_once_at_a_dense_rate_leaves_no_wall():
         mid = 0.5 * (m.map.a + m.map.b)
         there = (np.abs(mid[:, 1] - 1.5) < 0.1) & (np.abs(mid[:, 0] + 0.6) < 0.3)
         assert there.any() == kept, (step, age_travel)
+
+
+def test_retired_contributions_serve_the_submaps_and_follow_compaction():
+    """Contributions of glimpses aged out (``Mapper._retired``) join the closure submap of
+    their nodes, and a compaction drops those of the nodes it drops and renumbers the rest."""
+    m, *_ = _run(max_nodes=0, laps=1)
+    n, X = m.count, m.poses
+    j = n // 2
+    before = len(m._submap(X, j, n - 1))
+    a, b = np.array([[0.5, 1.0], [0.5, 2.0], [0.5, 3.0]]), np.array([[1.5, 1.0]] * 3)
+    m._retired = (np.array([1, j, n - 1]), a, b)
+    sub = m._submap(X, j, n - 1)
+    assert len(sub) == before + 1  # only node j's row is within j +- window
+    # in j's own frame, node j's row is where it was recorded
+    assert np.any(np.all(np.isclose(sub.a, a[1]), axis=1))
+    cut = m.compact(n - j)
+    assert cut == j
+    np.testing.assert_array_equal(m._retired[0], [0, n - 1 - j])
+    np.testing.assert_array_equal(m._retired[1], a[1:])
