@@ -366,8 +366,58 @@ def _long_corridor() -> World:
     return World("long_corridor", walls, way, speed=0.8)
 
 
+def _recessed(p0, p1, normal, rng: np.random.Generator) -> list[Wall]:
+    """A straight wall from p0 to p1 with door recesses 0.9-1.6 m wide and 0.15-0.5 m deep
+    towards ``normal``, 2-9 m apart."""
+    p0, p1, n = (np.asarray(v, float) for v in (p0, p1, normal))
+    length = float(np.linalg.norm(p1 - p0))
+    u = (p1 - p0) / length
+    pts = [p0]
+    x = rng.uniform(2.0, 5.0)
+    while x < length - 4.0:
+        w, d = rng.uniform(0.9, 1.6), rng.uniform(0.15, 0.5)
+        a, b = p0 + u * x, p0 + u * (x + w)
+        pts += [a, a + n * d, b + n * d, b]
+        x += w + rng.uniform(2.0, 9.0)
+    return _polyline([(float(q[0]), float(q[1])) for q in [*pts, p1]])
+
+
+def _office() -> World:
+    # A 100 m x 48 m office floor: 4 m corridors round two blocks of rooms and between them,
+    # doors (recesses) along every corridor.  One lap drives every corridor twice, once
+    # each way, keeping to the right (lanes 1.2 m apart): a revisit the other way looks the
+    # other way, as a robot sent back down a corridor does.  737 m a lap.
+    rng = np.random.default_rng(5)
+    W, H, c = 100.0, 48.0, 4.0
+    walls = (_recessed((0, 0), (W, 0), (0, -1), rng) + _recessed((W, 0), (W, H), (1, 0), rng)
+             + _recessed((W, H), (0, H), (0, 1), rng) + _recessed((0, H), (0, 0), (-1, 0), rng))
+    for y0, y1 in ((c, H / 2 - c / 2), (H / 2 + c / 2, H - c)):
+        x0, x1 = c, W - c
+        walls += (_recessed((x0, y0), (x1, y0), (0, 1), rng)
+                  + _recessed((x1, y0), (x1, y1), (-1, 0), rng)
+                  + _recessed((x1, y1), (x0, y1), (0, -1), rng)
+                  + _recessed((x0, y1), (x0, y0), (1, 0), rng))
+    yb, ym, yt, xl, xr = c / 2, H / 2, H - c / 2, c / 2, W - c / 2   # corridor centre lines
+    o, r = 0.6, 2.5   # lane offset; each run starts and ends r from its corner (rounded)
+    runs = [((xl, yb - o), (xr, yb - o)), ((xr + o, yb), (xr + o, yt)),   # bottom E, right N
+            ((xr, yt + o), (xl, yt + o)), ((xl - o, yt), (xl - o, ym)),   # top W, left S
+            ((xl, ym - o), (xr, ym - o)), ((xr - o, ym), (xr - o, yb)),   # middle E, right S
+            ((xr, yb + o), (xl, yb + o)), ((xl + o, yb), (xl + o, yt)),   # bottom W, left N
+            ((xl, yt - o), (xr, yt - o)), ((xr - o, yt), (xr - o, ym)),   # top E, right S
+            ((xr, ym + o), (xl, ym + o)), ((xl - o, ym), (xl - o, yb))]   # middle W, left S
+    way = []
+    for p, q in runs:
+        p, q = np.asarray(p, float), np.asarray(q, float)
+        u = (q - p) / np.linalg.norm(q - p)
+        a, b = p + u * r, q - u * r
+        n = max(int(np.linalg.norm(b - a) // 10.0), 1)
+        way += [a + (b - a) * k / n for k in range(n + 1)]
+    return World("office", walls, np.array(way), speed=1.0)
+
+
 WORLDS = {"corridor": _corridor, "room": _room, "loop": _loop, "hall": _hall,
-          "expo": _expo, "campus": _campus, "long_corridor": _long_corridor}
+          "expo": _expo, "campus": _campus, "long_corridor": _long_corridor,
+          "office": _office}
 
 
 def get_world(name: str) -> World:
