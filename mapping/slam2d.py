@@ -417,9 +417,15 @@ class Mapper:
     def _retire(self, got: list) -> None:
         """Keep the contributions of segments aged out as glimpses (``MapParams.age_seen``)
         for the loop closures' submaps, in node order."""
-        nodes, a, b = (np.concatenate([r[k] for r in (self._retired, *got)]) for k in range(3))
-        order = np.argsort(nodes, kind="stable")
-        self._retired = (nodes[order], a[order], b[order])
+        new = [np.concatenate([r[k] for r in got]) for k in range(3)]
+        # the new rows are of the last few dozen nodes: only the kept rows from the first
+        # of them on are sorted again (a long dense run retires thousands of rows)
+        k = int(np.searchsorted(self._retired[0], new[0].min(), side="right"))
+        tail = [np.concatenate([old[k:], add]) for old, add in zip(self._retired, new,
+                                                                       strict=True)]
+        order = np.argsort(tail[0], kind="stable")
+        self._retired = tuple(np.concatenate([old[:k], t[order]])
+                              for old, t in zip(self._retired, tail, strict=True))
 
     def _tie_frozen(self, i: int, seg: Segments, corr: Correction) -> None:
         """Scan i is tied to the frozen segments when its correction matched at least
