@@ -92,3 +92,39 @@ def test_no_wider_attempt_while_the_scan_tracks_the_map():
 
     m, _ = _run(factory, below=0.0)
     assert calls and m.loop_stats["wide_tried"] == 0
+
+
+def test_a_pose_whose_beams_cross_the_earlier_visits_walls_closes_no_loop(monkeypatch):
+    """A relocalised closure is refused when more than ``max_crossing`` of the scan's beams
+    would pass through the walls the earlier visit saw there (``sees_through``); the same
+    hypotheses with free beams close loops."""
+    from dataclasses import replace as dc_replace
+
+    from cgamap.mapping import slam2d
+
+    real = slam2d.relocalize
+
+    def run(crossing: float):
+        def forged(*args, **kwargs):
+            res = real(*args, **kwargs)
+            res.hypotheses = [dc_replace(h, crossing=crossing) for h in res.hypotheses]
+            return res
+
+        monkeypatch.setattr(slam2d, "relocalize", forged)
+        accepted = []
+
+        def factory(m, orig):
+            def spy(seg, sub, guess, i, j):
+                got = orig(seg, sub, guess, i, j)
+                accepted.append(got is not None)
+                return got
+            return spy
+
+        m, _ = _run(factory)
+        return m, accepted
+
+    m, accepted = run(0.0)
+    assert any(accepted) and m.loop_stats["sees_through"] == 0
+    m, accepted = run(0.5)
+    assert accepted and not any(accepted)
+    assert m.loop_stats["sees_through"] > 0
