@@ -338,34 +338,6 @@ def _campus() -> World:
     return World("campus", walls, way, speed=1.0)
 
 
-def _long_corridor() -> World:
-    # A 150 m x 4 m corridor, doors (recesses) at irregular spacing on both sides, driven
-    # there and back: along it only the recesses' sides fix the position.
-    rng = np.random.default_rng(11)
-    length = 150.0
-
-    def side(y: float, sgn: float) -> list[Wall]:
-        pts = [(0.0, y)]
-        x = rng.uniform(2.0, 5.0)
-        while x < length - 4.0:
-            w, d = rng.uniform(0.9, 1.6), rng.uniform(0.15, 0.5)
-            pts += [(x, y), (x, y + sgn * d), (x + w, y + sgn * d), (x + w, y)]
-            x += w + rng.uniform(2.0, 9.0)
-        return _polyline(pts + [(length, y)])
-
-    walls = side(-2.0, -1.0) + side(2.0, 1.0)
-    walls += [Wall(0.0, -2.0, 0.0, 2.0), Wall(length, -2.0, length, 2.0)]
-    # straight legs 1.25 m off the axis, a half circle at each end
-    a = np.deg2rad(np.arange(-60.0, 61.0, 30.0))
-    east = np.column_stack([147.0 + 1.25 * np.cos(a), 1.25 * np.sin(a)])
-    west = np.column_stack([3.0 - 1.25 * np.cos(a), -1.25 * np.sin(a)])
-    legs = np.arange(10.0, 141.0, 10.0)
-    way = np.vstack([np.column_stack([legs, np.full_like(legs, -1.25)]), [[147.0, -1.25]], east,
-                     [[147.0, 1.25]], np.column_stack([legs[::-1], np.full_like(legs, 1.25)]),
-                     [[3.0, 1.25]], west, [[3.0, -1.25]]])
-    return World("long_corridor", walls, way, speed=0.8)
-
-
 def _recessed(p0, p1, normal, rng: np.random.Generator) -> list[Wall]:
     """A straight wall from p0 to p1 with door recesses 0.9-1.6 m wide and 0.15-0.5 m deep
     towards ``normal``, 2-9 m apart."""
@@ -380,6 +352,25 @@ def _recessed(p0, p1, normal, rng: np.random.Generator) -> list[Wall]:
         pts += [a, a + n * d, b + n * d, b]
         x += w + rng.uniform(2.0, 9.0)
     return _polyline([(float(q[0]), float(q[1])) for q in [*pts, p1]])
+
+
+def _long_corridor() -> World:
+    # A 150 m x 4 m corridor, doors (recesses) at irregular spacing on both sides, driven
+    # there and back: along it only the recesses' sides fix the position.
+    rng = np.random.default_rng(11)
+    length = 150.0
+    walls = (_recessed((0.0, -2.0), (length, -2.0), (0.0, -1.0), rng)
+             + _recessed((0.0, 2.0), (length, 2.0), (0.0, 1.0), rng))
+    walls += [Wall(0.0, -2.0, 0.0, 2.0), Wall(length, -2.0, length, 2.0)]
+    # straight legs 1.25 m off the axis, a half circle at each end
+    a = np.deg2rad(np.arange(-60.0, 61.0, 30.0))
+    east = np.column_stack([147.0 + 1.25 * np.cos(a), 1.25 * np.sin(a)])
+    west = np.column_stack([3.0 - 1.25 * np.cos(a), -1.25 * np.sin(a)])
+    legs = np.arange(10.0, 141.0, 10.0)
+    way = np.vstack([np.column_stack([legs, np.full_like(legs, -1.25)]), [[147.0, -1.25]], east,
+                     [[147.0, 1.25]], np.column_stack([legs[::-1], np.full_like(legs, 1.25)]),
+                     [[3.0, 1.25]], west, [[3.0, -1.25]]])
+    return World("long_corridor", walls, way, speed=0.8)
 
 
 def _office() -> World:
