@@ -678,16 +678,13 @@ class Mapper:
         # over a long run's 400 000 contributions took ~1.5 ms a try)
         c_node = self.map.c_node
         lo, hi = max(j - window, 0), min(j + window, last)
-        sel = slice(int(np.searchsorted(c_node, lo, side="left")),
-                    int(np.searchsorted(c_node, hi, side="right")))
+        sel = _node_slice(c_node, lo, hi)
         nodes, ca, cb = c_node[sel], self.map.c_a[sel], self.map.c_b[sel]
         rn, ra, rb = self._retired
-        if len(rn):
-            r = slice(int(np.searchsorted(rn, lo, side="left")),
-                      int(np.searchsorted(rn, hi, side="right")))
-            if r.stop > r.start:
-                nodes = np.concatenate([nodes, rn[r]])
-                ca, cb = np.concatenate([ca, ra[r]]), np.concatenate([cb, rb[r]])
+        r = _node_slice(rn, lo, hi)
+        if r.stop > r.start:
+            nodes = np.concatenate([nodes, rn[r]])
+            ca, cb = np.concatenate([ca, ra[r]]), np.concatenate([cb, rb[r]])
         if len(nodes) < 3:
             return None
         rel = relative(X[j], X[nodes])
@@ -1149,6 +1146,12 @@ def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams
         found.append(EdgeArrays.of(jj[good], ii[good], res.pose[good],
                                    np.broadcast_to(info, (int(good.sum()), 3, 3))))
     return EdgeArrays.concat(found)
+
+
+def _node_slice(nodes: np.ndarray, lo: int, hi: int) -> slice:
+    """The rows of node-sorted ``nodes`` whose node lies in [lo, hi]."""
+    return slice(int(np.searchsorted(nodes, lo, side="left")),
+                 int(np.searchsorted(nodes, hi, side="right")))
 
 
 def _move(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
