@@ -233,7 +233,6 @@ class Mapper:
         self.last_aged = -10 ** 9  # the node the map's short segments were last judged at
         # odometry distance from the start, per node (an array: each scan searches it)
         self.travel = Column((), float)
-        self.turned = Column((), float)  # ... and odometry turn (rad, absolute) from the start
         # per node: its raw odometry step (x, y, theta), the calibration (scale, drift) it
         # was predicted with, which the finishing pass re-estimates (:func:`_recalibrate`),
         # the step's length for the prior and the heading it was predicted from ...
@@ -338,7 +337,6 @@ class Mapper:
             if i and i not in self.anchors:
                 self.anchors.append(i)
             self.travel.append(self.travel[-1] if len(self.travel) else 0.0)
-            self.turned.append(self.turned[-1] if len(self.turned) else 0.0)
             self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m, 0.0, 0.0))
             self.odo_cov.append(np.zeros((3, 3)))
             self.last_odom = odom_l
@@ -380,7 +378,6 @@ class Mapper:
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
         self.travel.append(self.travel[-1] + d_odo)
-        self.turned.append(self.turned[-1] + abs(float(raw[2])))
         self.odo_step.append((*raw, scale, drift, step, prev[2]))
         self.odo_cov.append(cov if cov is not None else
                             np.diag(1.0 / P.correction.prior_information(step)))
@@ -504,7 +501,6 @@ class Mapper:
             setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = Column((), float, self.travel[cut:])
-        self.turned = Column((), float, self.turned[cut:])
         self.odo_step = Column((7,), float, self.odo_step[cut:])
         self.odo_cov = Column((3, 3), float, self.odo_cov[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
@@ -546,7 +542,9 @@ class Mapper:
             if P.map.clear.enabled:
                 self.cleared += int(np.count_nonzero(self.map.through >= P.map.clear.scans))
             got: list = []
-            age_out(self.map, node, P.map, self.travel.array(), self.turned.array(), got)
+            # the odometry's turn so far (rad, absolute), from each node's raw step
+            turned = np.cumsum(np.abs(self.odo_step.array()[:, 2]))
+            age_out(self.map, node, P.map, self.travel.array(), turned, got)
             if got:
                 self._retire(got)
             self.last_aged = node
