@@ -337,8 +337,11 @@ def crossing_share(seg: Segments, min_angle_deg: float) -> float:
 
 
 def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
-               params: RelocParams | None = None) -> RelocResult:
-    """Pose of the laser in the map from one scan's segments (laser frame) and points."""
+               params: RelocParams | None = None,
+               near: tuple[np.ndarray, float, float] | None = None) -> RelocResult:
+    """Pose of the laser in the map from one scan's segments (laser frame) and points.
+    ``near``: (pose, metres, radians): a prior (a loop closure's current estimate): only
+    candidates within that distance and turn of the pose are verified, the pose among them."""
     P = params or RelocParams()
     field = field or DistanceField(lmap, P.field_resolution)
     # one line fixes no position, but the sweep (points against the map) may still
@@ -446,10 +449,17 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         Ts_, Rs_ = _sweep(field, pts, rots, P)
         cand_T.append(Ts_)
         cand_R.append(Rs_)
+    if near is not None:
+        cand_T.append(np.asarray(near[0][:2], float)[None])
+        cand_R.append(np.array([near[0][2]], float))
     if not cand_T:
         return RelocResult(False, None, 0.0, [])
     T = np.concatenate(cand_T)
     th = np.concatenate(cand_R)
+    if near is not None:
+        keep = (np.hypot(*(T - near[0][:2]).T) < near[1]) & (np.abs(_wrap(th - near[0][2]))
+                                                              < near[2])
+        T, th = T[keep], th[keep]
     scores = _score(field, pts, T, th, P.coarse_dist)
     if P.point_refine:
         hyps = _verify_points(field, seg.points, T, th, scores, P)
