@@ -77,6 +77,24 @@ def test_rivals_name_each_look_alike_place_once():
     assert rivals(h, h[0], 0.01) == []
 
 
+def test_a_prior_keeps_the_search_near_it():
+    """``near``: only candidates within (metres, radians) of the prior are verified.  In
+    the box, the point-symmetric pose fits as well as the true one; near the true pose it
+    is no longer among the hypotheses."""
+    w = world([(-4, -2, 4, -2), (4, -2, 4, 2), (4, 2, -4, 2), (-4, 2, -4, -2)])
+    m = scanned_map(w, [(0.0, 0.0, 0.0)])
+    p = np.array([1.0, 0.5, 0.3])
+    seg = segments_from_scan(scan(w, p, n=720, fov=2 * np.pi))
+    prior = p + [0.3, -0.2, 0.05]
+    r = relocalize(m, seg, near=(prior, 1.0, 0.3))
+    assert r.found and np.hypot(*(r.pose[:2] - p[:2])) < 0.05
+    for h in r.hypotheses:  # ICP moves a candidate a little: within the band and a margin
+        assert np.hypot(*(h.pose[:2] - prior[:2])) < 1.5
+        assert abs(wrap(h.pose[2] - prior[2])) < 0.4
+    far = relocalize(m, seg)
+    assert any(np.hypot(*(h.pose[:2] + p[:2])) < 0.05 for h in far.hypotheses)
+
+
 def test_unrelated_scan_is_not_found(loop_world):
     _, _, m = loop_world
     # a triangular room: its walls meet at 60 degrees, no pair of the map's walls does
