@@ -369,6 +369,9 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     # scan's points and normals by pi (same lines, same pairing, opposite normal signs), so
     # both come out of one pass over the line pairs
     for th0 in rots[0::2]:
+        if near is not None and min(abs(_wrap(th0 + t * np.pi - near[0][2])) for t in (0, 1)
+                                    ) > near[2] + tol:
+            continue  # no candidate of this rotation or its twin could be kept
         c, s = np.cos(th0), np.sin(th0)
         R = np.array([[c, -s], [s, c]])
         ra, rb = sa @ R.T, sb @ R.T
