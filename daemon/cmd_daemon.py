@@ -272,7 +272,23 @@ def run_map_export(args: argparse.Namespace) -> int:
 def relocalize_via_daemon(args: argparse.Namespace) -> int:
     """Socket mode of ``cgamap relocalize``: the daemon relocalises on its latest scan.
     ``cmd_mapping`` calls this when neither --map nor --log is given."""
-    reply = _ask(args, "relocalize")
+    kw: dict = {}
+    near = getattr(args, "near", None)
+    if near is not None:
+        x, y, th = near
+        if not all(map(math.isfinite, near)):
+            raise UsageError(f"relocalize: --near: must be finite, got {x} {y} {th}")
+        kw["near"] = [x, y, math.radians(th)]
+        radius, turn = getattr(args, "radius", None), getattr(args, "turn", None)
+        if radius is not None:
+            if not (math.isfinite(radius) and 0 < radius <= 1000):
+                raise UsageError(f"relocalize: --radius: must be in (0, 1000] m, got {radius}")
+            kw["radius"] = radius
+        if turn is not None:
+            if not (math.isfinite(turn) and 0 < turn <= 180):
+                raise UsageError(f"relocalize: --turn: must be in (0, 180] degrees, got {turn}")
+            kw["turn"] = math.radians(turn)
+    reply = _ask(args, "relocalize", **kw)
     if not reply.get("ok"):
         raise UsageError(f"relocalize: {reply.get('error', 'failed')}", code=1)
     x, y, th = reply["pose"]

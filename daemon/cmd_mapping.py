@@ -50,6 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--json", action="store_true", help="one JSON object on stdout")
     r.add_argument("--lenient", action="store_true", help="skip malformed log lines")
+    r.add_argument("--near", nargs=3, type=float, metavar=("X", "Y", "THETA_DEG"),
+                   help="daemon mode: a hint, only poses near it (as a 2D pose estimate)")
+    r.add_argument("--radius", type=float, help="with --near: metres (default 2)")
+    r.add_argument("--turn", type=float, help="with --near: degrees (default 30)")
     r.set_defaults(func=run_relocalize)
 
 
@@ -187,6 +191,11 @@ def _keep_previous(path: Path, quiet: bool) -> None:
 
 
 def run_relocalize(args: argparse.Namespace) -> int:
+    if (args.radius is not None or args.turn is not None) and args.near is None:
+        raise UsageError("relocalize: --radius and --turn need --near")
+    if args.near is not None and (args.map is not None or args.log is not None):
+        raise UsageError("relocalize: --near asks the running daemon; give neither --map "
+                         "nor --log")
     if args.map is None and args.log is None:
         from cgamap.daemon.cmd_daemon import relocalize_via_daemon
 

@@ -199,10 +199,12 @@ class Mapper2D:
         base = self.m.base_pose(self.m.poses)
         return dict(zip(self.node_stamps, base, strict=True))
 
-    def relocalize(self, scan: LaserScan) -> tuple[np.ndarray, float, list] | None:
+    def relocalize(self, scan: LaserScan, near: tuple | None = None
+                   ) -> tuple[np.ndarray, float, list] | None:
         """Global pose of ``scan`` in the map by Hough-domain relocalisation, its score and
         its rivals (look-alike places scoring within ``RELOC_AMBIGUITY``, as (base pose,
-        score)), or None."""
+        score)), or None.  ``near``: (base pose, metres, radians), a hint (someone says
+        roughly where the robot is): only poses that close to it are considered."""
         from cgamap.mapping.relocalize import DistanceField, RelocParams, relocalize, rivals
         from cgamap.mapping.segments import extract_segments
 
@@ -216,7 +218,8 @@ class Mapper2D:
         if self._field_key != key:
             self._field = DistanceField(self.m.map, RelocParams().field_resolution)
             self._field_key = key
-        res = relocalize(self.m.map, seg, self._field)
+        prior = None if near is None else (self.m.laser_pose(near[0]), near[1], near[2])
+        res = relocalize(self.m.map, seg, self._field, near=prior)
         if not res.found or res.pose is None:
             return None
         alts = rivals(res.hypotheses, res.hypotheses[0], RELOC_AMBIGUITY, 0.5)
@@ -529,20 +532,24 @@ class MappingLoop:
                         self.lost_quality, self.lost_after)
             self.relocalize(scan, jump_if_ambiguous=False)
 
-    def relocalize(self, scan: LaserScan | None = None, jump_if_ambiguous: bool = True) -> dict:
+    def relocalize(self, scan: LaserScan | None = None, jump_if_ambiguous: bool = True,
+                   near: tuple | None = None) -> dict:
         """Relocalise on ``scan`` (default: the last processed one).  The answer names the
         look-alike places (``alternatives``: x, y, theta, score) and says ``ambiguous`` when
         there are any; with ``jump_if_ambiguous`` false (a lost robot's own attempt) such an
-        answer leaves the pose alone: the robot moves on and tries again."""
+        answer leaves the pose alone: the robot moves on and tries again.  ``near``: (base
+        pose, metres, radians), a hint: only poses within that distance and turn of it."""
         self.counts["relocalize_tries"] += 1
         if self.mapper is None or not hasattr(self.mapper, "relocalize"):
             return {"ok": False, "error": "no 2D mapper"}
         scan = scan or self._last_scan
         if scan is None:
             return {"ok": False, "error": "no scan yet"}
-        res = self.mapper.relocalize(scan)
+        res = (self.mapper.relocalize(scan) if near is None
+               else self.mapper.relocalize(scan, near=near))
         if res is None:
-            return {"ok": False, "error": "relocalisation found no pose"}
+            return {"ok": False, "error": "relocalisation found no pose"
+                    + ("" if near is None else " near the hint")}
         pose, score, rivals = res
         alts = [[*map(float, p), round(sc, 4)] for p, sc in rivals]
         if alts and not jump_if_ambiguous:

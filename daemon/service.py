@@ -315,8 +315,29 @@ class Daemon:
         return {"class": "trajectory", "columns": cols, "rows": traj}
 
     def cmd_relocalize(self, req: dict) -> dict:
+        """Relocalise on the latest scan; with ``near`` [x, y, theta] (a hint, as a person
+        gives one on a map) only within ``radius`` metres (default 2) and ``turn`` radians
+        (default 0.5) of it."""
+        near = None
+        if "near" in req:
+            hint = req["near"]
+            if not isinstance(hint, list) or len(hint) != 3:
+                raise ValueError("near must be [x, y, theta]")
+            pose = [float(v) for v in hint]
+            radius, turn = float(req.get("radius", 2.0)), float(req.get("turn", 0.5))
+            if not all(np.isfinite(pose)):
+                raise ValueError("near: x, y, theta must be finite")
+            if max(abs(pose[0]), abs(pose[1])) > POSE_LIMIT_M:
+                raise ValueError(f"near: x, y must be within +-{POSE_LIMIT_M:g} m")
+            if not (np.isfinite(radius) and 0 < radius <= 1000):
+                raise ValueError(f"radius must be in (0, 1000] m, got {radius}")
+            if not (np.isfinite(turn) and 0 < turn <= np.pi):
+                raise ValueError(f"turn must be in (0, pi] rad, got {turn}")
+            near = (np.array(pose), radius, turn)
+        elif "radius" in req or "turn" in req:
+            raise ValueError("radius and turn need near")
         with self.lock:
-            return {"class": "relocalize", **self.loop.relocalize()}
+            return {"class": "relocalize", **self.loop.relocalize(near=near)}
 
     def cmd_checkpoint(self, req: dict) -> dict:
         with self.lock:

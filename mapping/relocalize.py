@@ -460,9 +460,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     T = np.concatenate(cand_T)
     th = np.concatenate(cand_R)
     if near is not None:
-        keep = (np.hypot(*(T - near[0][:2]).T) < near[1]) & (np.abs(_wrap(th - near[0][2]))
-                                                              < near[2])
-        T, th = T[keep], th[keep]
+        T, th = _near(T, th, near)
     scores = _score(field, pts, T, th, P.coarse_dist)
     if P.point_refine:
         hyps = _verify_points(field, seg.points, T, th, scores, P)
@@ -472,6 +470,9 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             # the scan's ranges)
             reach = _reach(seg.points, P, field.res)
             T2, th2, sc2 = _fallback_sweep(field, pts, P, reach)
+            if near is not None:
+                keep = _near(T2, th2, near, mask=True)
+                T2, th2, sc2 = T2[keep], th2[keep], sc2[keep]
             hyps += _verify_points(field, seg.points, T2, th2, sc2,
                                    replace(P, icp_candidates=P.fallback_icp,
                                            final_candidates=P.fallback_final))
@@ -505,6 +506,13 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if not hyps or hyps[0].score < P.min_score:
         return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _near(T: np.ndarray, th: np.ndarray, near: tuple, mask: bool = False):
+    """The candidates (T, th) within ``near``'s (pose, metres, radians); the mask if asked."""
+    keep = (np.hypot(*(T - near[0][:2]).T) < near[1]) & (
+        np.abs(_wrap(th - near[0][2])) < near[2])
+    return keep if mask else (T[keep], th[keep])
 
 
 def _distinct(T: np.ndarray, th: np.ndarray, order: np.ndarray, cell: float, ang: float,

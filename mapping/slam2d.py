@@ -335,7 +335,7 @@ class Mapper:
     def poses(self) -> np.ndarray:
         return np.array(self.graph.poses) if self.graph.poses else np.zeros((0, 3))
 
-    def _laser(self, base_pose) -> np.ndarray:
+    def laser_pose(self, base_pose) -> np.ndarray:
         m = self.params.mount
         return np.asarray(base_pose, float) if m is None else compose(base_pose, m)
 
@@ -347,12 +347,12 @@ class Mapper:
         """One scan with its odometry (base) pose: predict, correct against the global map,
         add to the pose graph, close loops, merge into the map."""
         P = self.params
-        odom_l = self._laser(odom)
+        odom_l = self.laser_pose(odom)
         seg = extract_segments(ranges, angle_min, angle_increment, P.segments)
         corr = None
         if self.last_odom is None:
             # first scan, or re-anchored (set pose): a new chain held at the given pose
-            pose = self._laser(self.initial)
+            pose = self.laser_pose(self.initial)
             i = self.graph.add_node(pose)
             if i and i not in self.anchors:
                 self.anchors.append(i)

@@ -5,6 +5,7 @@ restart from the checkpoint, replay of the recording."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import stat
 import subprocess
@@ -132,6 +133,16 @@ def test_end_to_end(stack):
     if res.returncode == 0:
         assert json.loads(res.stdout)["class"] == "relocalize"
     else:  # "not found" is a daemon answer, reported as one line with exit code 1
+        assert res.returncode == 1 and res.stderr.startswith("cgamap: relocalize:"), res.stderr
+    # ... and with a hint (a 2D pose estimate): the answer lies within its radius
+    x, y, th = d.ask("status")["pose"]
+    res = cli("relocalize", "--socket", str(d.socket), "--json", "--near", str(x), str(y),
+              str(math.degrees(th)), "--radius", "2", "--turn", "20")
+    if res.returncode == 0:
+        got = json.loads(res.stdout)["pose"]
+        print("hinted relocalisation:", got, "hint:", (x, y, th))
+        assert math.hypot(got[0] - x, got[1] - y) < 2.5, (got, (x, y))
+    else:
         assert res.returncode == 1 and res.stderr.startswith("cgamap: relocalize:"), res.stderr
     driver.stop_event.set()
     driver.join(5)

@@ -315,3 +315,25 @@ def test_3d_parameters_reach_the_plane_detector():
     loop = MappingLoop(config_mod.validate({"mapping": {"params3d": {"stride": 3}}}),
                        devices={})
     assert loop.frames3d.stride == 3 and loop.plane_params.threshold == 0.02
+
+
+def test_a_hint_picks_the_look_alike_place_it_names():
+    """``Mapper2D.relocalize(scan, near=...)``: in a box both the true pose and its point
+    mirror fit a full-circle scan; a hint near either one gives that one, with no rival;
+    a hint near neither gives no pose."""
+    from cgamap.daemon.loop import Mapper2D
+    from synth2d import scan, scanned_map, world
+
+    w = world([(-4, -2, 4, -2), (4, -2, 4, 2), (4, 2, -4, 2), (-4, 2, -4, -2)])
+    m = Mapper2D(None, {})
+    m.m.map = scanned_map(w, [(0.0, 0.0, 0.0)])
+    p = np.array([1.0, 0.5, 0.3])
+    s = scan(w, p, n=720, fov=2 * np.pi)
+    pose, _, alts = m.relocalize(s)
+    mirror = np.array([-1.0, -0.5, 0.3 - np.pi])
+    places = [pose, *[a for a, _ in alts]]
+    for want in (p, mirror):
+        assert any(np.hypot(*(q[:2] - want[:2])) < 0.05 for q in places)
+        got, _, alts = m.relocalize(s, near=(want + [0.4, -0.3, 0.1], 1.0, 0.3))
+        assert np.hypot(*(got[:2] - want[:2])) < 0.05 and not alts
+    assert m.relocalize(s, near=(np.array([3.0, -1.5, 1.9]), 0.3, 0.1)) is None

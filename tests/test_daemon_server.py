@@ -41,6 +41,14 @@ def test_commands_and_errors(daemon):
     assert d.ask("set-pose", x=1.5, y=-2.0)["class"] == "error"  # theta missing
     assert d.ask("set-pose", x=1.5, y=-2.0, theta=0.25)["pose"] == [1.5, -2.0, 0.25]
     assert d.ask("relocalize")["ok"] is False  # no scan yet: a clear refusal
+    # a hint must be a pose, with a positive radius and turn; radius and turn need one
+    for bad in ({"near": [1.0, 2.0]}, {"near": [1.0, "x", 0.0]}, {"near": [1e9, 0.0, 0.0]},
+                {"near": [0.0, 0.0, 0.0], "radius": -1.0},
+                {"near": [0.0, 0.0, 0.0], "turn": 7.0}, {"radius": 2.0}):
+        err = d.ask("relocalize", **bad)
+        assert err["class"] == "error" and err["error"].startswith("relocalize: "), (bad, err)
+    hinted = d.ask("relocalize", near=[0.0, 0.0, 0.0], radius=3.0)
+    assert hinted["class"] == "relocalize" and hinted["ok"] is False  # still no scan
     ck = d.ask("checkpoint")
     assert ck["class"] == "checkpoint"
     assert d.checkpoint()["loop"]["pose"].tolist() == [1.5, -2.0, 0.25]
