@@ -282,6 +282,9 @@ SCHEMA = Spec("record", fields={
         "params3d": Spec("map", default={}, values=Spec("any"), check=_check_params3d),
         "lost_quality": Spec("float", default=0.2, check=_non_negative),
         "lost_after": Spec("int", default=8, check=_positive),
+        # a lost robot first relocalises within this many metres of its pose (0: the whole
+        # map at once)
+        "lost_radius": Spec("float", default=3.0, check=_non_negative),
         "max_interp_gap": Spec("float", default=0.5, check=_positive),
         # scans are mapped when the robot moved this much (m, rad) since the last mapped one,
         # and at most scan_max_rate per second: a standing robot does not grow the pose graph

@@ -245,6 +245,7 @@ class Daemon:
             self.cfg["log_level"] = new["log_level"]
             self.loop.lost_quality = new["mapping"]["lost_quality"]
             self.loop.lost_after = new["mapping"]["lost_after"]
+            self.loop.lost_radius = new["mapping"]["lost_radius"]
             self.cfg["mapping"]["optimize_every_s"] = new["mapping"]["optimize_every_s"]
             for w in self.supervisor.workers.values():
                 w.backoff_initial = new["supervisor"]["backoff_initial"]

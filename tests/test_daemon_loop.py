@@ -117,10 +117,12 @@ class FakeMapper:
         return np.array([5.0, 6.0, 0.5]), 0.9, []
 
 
-def _lose_track(fake: FakeMapper) -> MappingLoop:
-    """A loop whose matches stay poor for ``lost_after`` scans: it relocalises once."""
+def _lose_track(fake: FakeMapper, lost_radius: float = 0.0) -> MappingLoop:
+    """A loop whose matches stay poor for ``lost_after`` scans: it relocalises (with
+    ``lost_radius`` 0, once, over the whole map)."""
     loop = MappingLoop(cfg(lost_quality=0.2, lost_after=4, min_travel=0.0, min_turn=0.0,
-                           scan_max_rate=1000.0), mapper2d=fake, devices={})
+                           scan_max_rate=1000.0, lost_radius=lost_radius),
+                       mapper2d=fake, devices={})
     world = get_world("corridor")
     for i in range(4):
         loop.handle("laser", scan_at(world, 0.1 * i, i, (i + 1) * 10_000_000))
@@ -337,3 +339,45 @@ def test_a_hint_picks_the_look_alike_place_it_names():
         got, _, alts = m.relocalize(s, near=(want + [0.4, -0.3, 0.1], 1.0, 0.3))
         assert np.hypot(*(got[:2] - want[:2])) < 0.05 and not alts
     assert m.relocalize(s, near=(np.array([3.0, -1.5, 1.9]), 0.3, 0.1)) is None
+
+
+def test_a_lost_robot_looks_near_its_pose_first():
+    """With ``lost_radius``, the lost robot's first try is within that radius of the pose
+    it had (the hint names it); found there, it jumps and counts ``relocalized_near``.
+    Found nowhere near, the whole map is tried next, as without the radius."""
+
+    class Near(FakeMapper):
+        def __init__(self, quality, near_answer):
+            super().__init__(quality)
+            self.nears, self.near_answer = [], near_answer
+
+        def relocalize(self, scan, near=None):
+            self.reloc_calls += 1
+            self.nears.append(near)
+            self.at_call = self.p.copy()  # the pose the mapper gave last
+            if near is not None:
+                return None if self.near_answer is None else (self.near_answer, 0.9, [])
+            return np.array([5.0, 6.0, 0.5]), 0.9, []
+
+    fake = Near(0.05, np.array([0.3, 0.1, 0.0]))
+    loop = _lose_track(fake, lost_radius=2.5)
+    assert fake.reloc_calls == 1 and fake.nears[0][1] == 2.5
+    assert np.allclose(fake.nears[0][0], fake.at_call)  # the hint: the pose it had
+    assert loop.counts["relocalized_near"] == 1 and loop.counts["relocalized"] == 1
+    assert loop.current_pose().tolist() == [0.3, 0.1, 0.0]
+
+    class Weak(Near):  # a pose near the hint that fits too little of the scan: no answer
+        def relocalize(self, scan, near=None):
+            got = super().relocalize(scan, near)
+            return got if near is None else (got[0], 0.6, [])
+
+    fake = Weak(0.05, np.array([0.3, 0.1, 0.0]))
+    loop = _lose_track(fake, lost_radius=2.5)
+    assert fake.reloc_calls == 2 and loop.counts["relocalized_near"] == 0
+    assert loop.current_pose().tolist() == [5.0, 6.0, 0.5]
+
+    fake = Near(0.05, None)  # nothing fits near: the whole map
+    loop = _lose_track(fake, lost_radius=2.5)
+    assert fake.reloc_calls == 2 and fake.nears[0] is not None and fake.nears[1] is None
+    assert loop.counts["relocalized_near"] == 0 and loop.counts["relocalized"] == 1
+    assert loop.current_pose().tolist() == [5.0, 6.0, 0.5]
