@@ -318,14 +318,14 @@ class Daemon:
     def cmd_relocalize(self, req: dict) -> dict:
         """Relocalise on the latest scan; with ``near`` [x, y, theta] (a hint, as a person
         gives one on a map) only within ``radius`` metres (default 2) and ``turn`` radians
-        (default 0.5) of it."""
+        (default 30 degrees) of it."""
         near = None
         if "near" in req:
             hint = req["near"]
             if not isinstance(hint, list) or len(hint) != 3:
                 raise ValueError("near must be [x, y, theta]")
             pose = [float(v) for v in hint]
-            radius, turn = float(req.get("radius", 2.0)), float(req.get("turn", 0.5))
+            radius, turn = float(req.get("radius", 2.0)), float(req.get("turn", np.deg2rad(30.0)))
             if not all(np.isfinite(pose)):
                 raise ValueError("near: x, y, theta must be finite")
             if max(abs(pose[0]), abs(pose[1])) > POSE_LIMIT_M:
