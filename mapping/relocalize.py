@@ -460,7 +460,8 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     T = np.concatenate(cand_T)
     th = np.concatenate(cand_R)
     if near is not None:
-        T, th = _near(T, th, near)
+        keep = _near(T, th, near)
+        T, th = T[keep], th[keep]
     scores = _score(field, pts, T, th, P.coarse_dist)
     if P.point_refine:
         hyps = _verify_points(field, seg.points, T, th, scores, P)
@@ -471,7 +472,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             reach = _reach(seg.points, P, field.res)
             T2, th2, sc2 = _fallback_sweep(field, pts, P, reach)
             if near is not None:
-                keep = _near(T2, th2, near, mask=True)
+                keep = _near(T2, th2, near)
                 T2, th2, sc2 = T2[keep], th2[keep], sc2[keep]
             hyps += _verify_points(field, seg.points, T2, th2, sc2,
                                    replace(P, icp_candidates=P.fallback_icp,
@@ -508,11 +509,10 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
 
 
-def _near(T: np.ndarray, th: np.ndarray, near: tuple, mask: bool = False):
-    """The candidates (T, th) within ``near``'s (pose, metres, radians); the mask if asked."""
-    keep = (np.hypot(*(T - near[0][:2]).T) < near[1]) & (
+def _near(T: np.ndarray, th: np.ndarray, near: tuple) -> np.ndarray:
+    """Which candidates (T, th) lie within ``near``'s (pose, metres, radians)."""
+    return (np.hypot(*(T - near[0][:2]).T) < near[1]) & (
         np.abs(_wrap(th - near[0][2])) < near[2])
-    return keep if mask else (T[keep], th[keep])
 
 
 def _distinct(T: np.ndarray, th: np.ndarray, order: np.ndarray, cell: float, ang: float,
