@@ -272,22 +272,18 @@ def run_map_export(args: argparse.Namespace) -> int:
 def relocalize_via_daemon(args: argparse.Namespace) -> int:
     """Socket mode of ``cgamap relocalize``: the daemon relocalises on its latest scan.
     ``cmd_mapping`` calls this when neither --map nor --log is given."""
+    from cgamap.daemon.server import HINT_RADIUS_M, HINT_TURN, hint_problem
+
     kw: dict = {}
     near = getattr(args, "near", None)
     if near is not None:
-        x, y, th = near
-        if not all(map(math.isfinite, near)):
-            raise UsageError(f"relocalize: --near: must be finite, got {x} {y} {th}")
-        kw["near"] = [x, y, math.radians(th)]
         radius, turn = getattr(args, "radius", None), getattr(args, "turn", None)
-        if radius is not None:
-            if not (math.isfinite(radius) and 0 < radius <= 1000):
-                raise UsageError(f"relocalize: --radius: must be in (0, 1000] m, got {radius}")
-            kw["radius"] = radius
-        if turn is not None:
-            if not (math.isfinite(turn) and 0 < turn <= 180):
-                raise UsageError(f"relocalize: --turn: must be in (0, 180] degrees, got {turn}")
-            kw["turn"] = math.radians(turn)
+        kw = {"near": [near[0], near[1], math.radians(near[2])],
+              "radius": HINT_RADIUS_M if radius is None else radius,
+              "turn": HINT_TURN if turn is None else math.radians(turn)}
+        problem = hint_problem(kw["near"], kw["radius"], kw["turn"])
+        if problem:  # its field, named as the flag is
+            raise UsageError(f"relocalize: --{problem}")
     reply = _ask(args, "relocalize", **kw)
     if not reply.get("ok"):
         raise UsageError(f"relocalize: {reply.get('error', 'failed')}", code=1)

@@ -562,8 +562,7 @@ class MappingLoop:
         scan = scan or self._last_scan
         if scan is None:
             return {"ok": False, "error": "no scan yet"}
-        res = (self.mapper.relocalize(scan) if near is None
-               else self.mapper.relocalize(scan, near=near))
+        res = self.mapper.relocalize(scan, near=near)
         if res is None:
             return {"ok": False, "error": "relocalisation found no pose"
                     + ("" if near is None else " near the hint")}

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import socket
 import socketserver
@@ -149,6 +150,26 @@ class QueryServer:
 
 class DaemonUnavailable(Exception):
     pass
+
+
+POSE_LIMIT_M = 1e6  # |x|, |y| bound for a pose given: beyond it the map's extent cannot be drawn
+HINT_RADIUS_M = 2.0            # a relocalisation hint's defaults: metres ...
+HINT_TURN = math.radians(30.0)  # ... and radians
+
+
+def hint_problem(pose, radius: float, turn: float) -> str | None:
+    """What is wrong with a relocalisation hint (``pose`` x, y, theta in radians, ``radius``
+    metres, ``turn`` radians), as "field: problem", or None: the CLI checks before it asks,
+    the daemon for any client."""
+    if not all(math.isfinite(v) for v in pose):
+        return "near: x, y, theta must be finite"
+    if max(abs(pose[0]), abs(pose[1])) > POSE_LIMIT_M:
+        return f"near: x, y must be within +-{POSE_LIMIT_M:g} m"
+    if not (math.isfinite(radius) and 0 < radius <= 1000):
+        return f"radius: must be in (0, 1000] m, got {radius}"
+    if not (math.isfinite(turn) and 0 < turn <= math.pi):
+        return f"turn: must be in (0, 180] degrees, got {math.degrees(turn):g}"
+    return None
 
 
 def connect(path: str | os.PathLike, timeout: float = 5.0) -> socket.socket:

@@ -22,7 +22,14 @@ from cgamap.daemon import config as config_mod
 from cgamap.daemon import notify
 from cgamap.daemon.devices import ReplaySource, build_source
 from cgamap.daemon.loop import MappingLoop
-from cgamap.daemon.server import QueryServer, handler_table
+from cgamap.daemon.server import (
+    HINT_RADIUS_M,
+    HINT_TURN,
+    POSE_LIMIT_M,
+    QueryServer,
+    handler_table,
+    hint_problem,
+)
 from cgamap.daemon.store import CheckpointStore
 from cgamap.daemon.supervisor import Supervisor
 from cgamap.mapping.jit import warm_up
@@ -30,7 +37,6 @@ from cgamap.mapping.jit import warm_up
 log = logging.getLogger("cgamapd")
 
 LOSSY_ROLES = ("laser", "camera")  # the newest scan/frame matters; odometry never dropped
-POSE_LIMIT_M = 1e6  # |x|, |y| bound for set-pose: beyond it the map's extent cannot be drawn
 
 
 class Daemon:
@@ -317,23 +323,19 @@ class Daemon:
 
     def cmd_relocalize(self, req: dict) -> dict:
         """Relocalise on the latest scan; with ``near`` [x, y, theta] (a hint, as a person
-        gives one on a map) only within ``radius`` metres (default 2) and ``turn`` radians
-        (default 30 degrees) of it."""
+        gives one on a map) only within ``radius`` metres and ``turn`` radians of it
+        (default ``HINT_RADIUS_M``, ``HINT_TURN``)."""
         near = None
         if "near" in req:
             hint = req["near"]
             if not isinstance(hint, list) or len(hint) != 3:
                 raise ValueError("near must be [x, y, theta]")
             pose = [float(v) for v in hint]
-            radius, turn = float(req.get("radius", 2.0)), float(req.get("turn", np.deg2rad(30.0)))
-            if not all(np.isfinite(pose)):
-                raise ValueError("near: x, y, theta must be finite")
-            if max(abs(pose[0]), abs(pose[1])) > POSE_LIMIT_M:
-                raise ValueError(f"near: x, y must be within +-{POSE_LIMIT_M:g} m")
-            if not (np.isfinite(radius) and 0 < radius <= 1000):
-                raise ValueError(f"radius must be in (0, 1000] m, got {radius}")
-            if not (np.isfinite(turn) and 0 < turn <= np.pi):
-                raise ValueError(f"turn must be in (0, pi] rad, got {turn}")
+            radius = float(req.get("radius", HINT_RADIUS_M))
+            turn = float(req.get("turn", HINT_TURN))
+            problem = hint_problem(pose, radius, turn)
+            if problem:
+                raise ValueError(problem)
             near = (np.array(pose), radius, turn)
         elif "radius" in req or "turn" in req:
             raise ValueError("radius and turn need near")

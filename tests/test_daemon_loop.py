@@ -112,7 +112,7 @@ class FakeMapper:
     def set_pose(self, pose):
         self.p = np.asarray(pose, float)
 
-    def relocalize(self, scan):
+    def relocalize(self, scan, near=None):
         self.reloc_calls += 1
         return np.array([5.0, 6.0, 0.5]), 0.9, []
 
@@ -147,7 +147,7 @@ def test_a_lost_robot_does_not_jump_to_an_ambiguous_pose():
     says why; asked for, relocalisation takes the best pose and names the rival."""
 
     class LookAlike(FakeMapper):
-        def relocalize(self, scan):
+        def relocalize(self, scan, near=None):
             self.reloc_calls += 1
             return np.array([5.0, 6.0, 0.5]), 0.9, [(np.array([15.0, 6.0, 0.5]), 0.88)]
 
