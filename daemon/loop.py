@@ -198,7 +198,7 @@ class Mapper2D:
             raise MapReplaced("the map was replaced while optimising; nothing applied")
         out = self.m.apply_finish(job)
         if self.m.count and self.m.last_odom is not None:  # not re-anchored since its scan
-            self._pose = self.m.base_pose(self.m.graph.poses[-1])
+            self._pose = self.m.base_pose(self.m.pose)  # the last node's, or tracked from it
         return out
 
     def node_poses(self) -> dict[int, np.ndarray]:
@@ -629,21 +629,29 @@ class MappingLoop:
 
     def _retrace(self, at: dict[int, np.ndarray]) -> None:
         """The kept nodes' new poses into the trajectory and the scan pose history (the
-        newest rows, by scan stamp): ``trajectory`` and 3D frames see the optimised poses."""
+        newest rows, by scan stamp): ``trajectory`` and 3D frames see the optimised poses.
+        A scan the mapper only tracked (no node of its own) moves with the node before it."""
         if not at:
             return
         oldest = min(at)
 
-        def redo(dq: collections.deque, make) -> None:
+        def redo(dq: collections.deque, pose_of, make) -> None:
             tail = []
             while dq and dq[-1][0] >= oldest:
                 tail.append(dq.pop())
+            was = now = None  # the last node's pose before and after
             for row in reversed(tail):
                 p = at.get(row[0])
+                if p is not None:
+                    was, now = pose_of(row), np.asarray(p, float)
+                elif was is not None:
+                    p = compose_pose2d(now, relative(was, pose_of(row)))
                 dq.append(row if p is None else make(row, p))
 
-        redo(self.trajectory, lambda r, p: (r[0], r[1], *map(float, p), r[5]))
-        redo(self.scan_poses.items, lambda r, p: (r[0], np.asarray(p, float)))
+        redo(self.trajectory, lambda r: np.array(r[2:5], float),
+             lambda r, p: (r[0], r[1], *map(float, p), r[5]))
+        redo(self.scan_poses.items, lambda r: np.asarray(r[1], float),
+             lambda r, p: (r[0], np.asarray(p, float)))
 
     def optimize_abort(self, job: Any) -> None:
         """Forget a job that failed or was abandoned (call under the loop's lock)."""

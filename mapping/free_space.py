@@ -34,7 +34,10 @@ from .jit import kernel
 @dataclass(frozen=True)
 class ClearParams:
     enabled: bool = True
-    every: int = 2              # test every this many scans (0.1-0.2 ms a test on Intel)
+    # test every this many graph nodes (0.1-0.2 ms a test on Intel); nodes are at least
+    # ``MapperParams.node_travel`` apart, and every 2nd left a cart's side 1 m off a room's
+    # path (nodes 0.8 m apart) in the map for two laps
+    every: int = 1
     scans: int = 3              # seen through in this many tested scans in a row: it goes
     max_beams: int = 360        # every k-th beam of a denser scan (a UTM's 1 081)
     min_beams: int = 1          # beams through it in one scan (none hitting it) to count, ...

@@ -19,7 +19,7 @@ from .linemap import LineMap
 from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
 from .relocalize import DistanceField, RelocParams, relocalize
 from .segments import SegmentParams, extract_segments
-from .slam2d import Mapper, MapperParams, calibration_figures
+from .slam2d import Mapper, MapperParams, calibration_figures, scan_poses
 
 
 @dataclass
@@ -68,21 +68,28 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
     times = []
     n = len(scans)
     online = np.zeros((n, 3))
+    node = np.zeros(n, dtype=int)      # each scan's graph node, or the node it was tracked
+    offset = np.zeros((n, 3))          # from, and its pose relative to that node
     t_all = time.perf_counter()
     for k, (scan, odo) in enumerate(zip(scans, odometry, strict=True)):
         t = time.perf_counter()
-        online[k] = mapper.step(scan.ranges, scan.angle_min, scan.angle_increment, odo).pose
+        res = mapper.step(scan.ranges, scan.angle_min, scan.angle_increment, odo)
         times.append(time.perf_counter() - t)
+        online[k], node[k], offset[k] = res.pose, res.node, res.offset
         if progress is not None:
             progress(k + 1, n)
     t = time.perf_counter()
-    say(f"finishing pass over {mapper.count} scans (neighbour matching, graph, walls) ...")
-    poses = mapper.finish()
+    say(f"finishing pass over {mapper.count} graph nodes of the {n} scans "
+        "(neighbour matching, graph, walls) ...")
+    poses = scan_poses(mapper.finish(), node - mapper.dropped, offset, online)
     t_final = time.perf_counter() - t
     say(f"finishing pass done in {t_final:.1f} s")
     med, p95 = _stats_ms(times)
     report = {
         "scans_processed": n,
+        # scans that became graph nodes (the others were tracked from them:
+        # MapperParams.node_travel, node_turn)
+        "graph_nodes": mapper.count,
         "segments": len(mapper.map),
         "ms_per_scan_median": round(med, 3),
         "ms_per_scan_p95": round(p95, 3),

@@ -224,6 +224,14 @@ class MapperParams:
     # a long run (the daemon): past this many graph nodes the oldest are dropped (0: never);
     # their map segments stay and still serve for matching, frozen where they are
     max_nodes: int = 0
+    # a scan becomes a graph node (merged into the map, a closure candidate) once the
+    # odometry has moved ``node_travel`` (m) or turned ``node_turn`` (rad) since the last
+    # node; one taken sooner is only tracked against the map, unless under ``node_below``
+    # of it matches (new ground: it is mapped).  A scan stream ten times denser than a
+    # metre apart then builds the graph a sparse log would (0, 0: every scan a node)
+    node_travel: float = 0.5
+    node_turn: float = 0.2
+    node_below: float = 0.5
 
 
 @dataclass
@@ -233,6 +241,10 @@ class StepResult:
     correction: Correction | None
     loops: int = 0
     optimized: bool = False
+    # the graph node this scan became, or was tracked from (numbered as ``Mapper.dropped``
+    # plus the graph index), and the scan's pose relative to it (zero for a node)
+    node: int = -1
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 class Mapper:
@@ -244,7 +256,9 @@ class Mapper:
         self.anchors = [0]   # nodes held fixed in the graph: the start and every re-anchor
         self.graph = PoseGraph()
         self.initial = np.asarray(initial_pose, dtype=float)
-        self.last_odom: np.ndarray | None = None
+        self.last_odom: np.ndarray | None = None   # at the last node
+        # the last tracked scan since that node: its odometry and pose relative to the node
+        self._tracked: tuple[np.ndarray, np.ndarray] | None = None
         self.last_opt = -10 ** 9
         self.pending = False
         self.loops = 0
@@ -260,13 +274,17 @@ class Mapper:
         # ... and the corrected pose's covariance: with those, how much of its prediction
         # the pose kept (:func:`prediction_shares`, once per pass, not per scan)
         self.odo_cov = Column((3, 3), float)
+        self.stepped = 0                    # scans stepped so far, nodes or tracked ...
+        self.node_scan = Column((), int)    # ... and per node, which of them it was
         self.calibration: dict = {}  # the last finishing pass's estimate
         self.calib_n = 0
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
         self.cleared = 0         # map segments the laser saw through, dropped (:mod:`.free_space`)
         self.moved = 0           # scan segments not mapped: they had moved in (:mod:`.moving`)
         # the last scans' ranges by node (the same chain only), for :mod:`.moving`
-        self._recent: dict[int, tuple[np.ndarray, float, float]] = {}
+        # by scan number (``stepped``), tracked scans too: (node, offset from it, odometry
+        # travel, ranges, angle_min, angle_increment)
+        self._recent: dict[int, tuple] = {}
         # the last scan whose correction matched mostly frozen map segments (created before
         # this run's nodes): the free-space test's tie for them (:mod:`.free_space`)
         self.frozen_tie = -10 ** 9
@@ -335,6 +353,14 @@ class Mapper:
     def poses(self) -> np.ndarray:
         return np.array(self.graph.poses) if self.graph.poses else np.zeros((0, 3))
 
+    @property
+    def pose(self) -> np.ndarray:
+        """The laser pose of the last scan: the last node's, or the scan tracked since."""
+        if not self.count:
+            return self.laser_pose(self.initial)
+        last = self.graph.poses[-1]
+        return last.copy() if self._tracked is None else compose(last, self._tracked[1])
+
     def laser_pose(self, base_pose) -> np.ndarray:
         m = self.params.mount
         return np.asarray(base_pose, float) if m is None else compose(base_pose, m)
@@ -350,6 +376,7 @@ class Mapper:
         odom_l = self.laser_pose(odom)
         seg = extract_segments(ranges, angle_min, angle_increment, P.segments)
         corr = None
+        self.stepped += 1
         if self.last_odom is None:
             # first scan, or re-anchored (set pose): a new chain held at the given pose
             pose = self.laser_pose(self.initial)
@@ -357,26 +384,38 @@ class Mapper:
             if i and i not in self.anchors:
                 self.anchors.append(i)
             self.travel.append(self.travel[-1] if len(self.travel) else 0.0)
+            self.node_scan.append(self.stepped - 1)
             self.odo_step.append((0.0, 0.0, 0.0, self.scale, self.drift_per_m, 0.0, 0.0))
             self.odo_cov.append(np.zeros((3, 3)))
             self.last_odom = odom_l
+            self._tracked = None
             self._recent.clear()  # a new chain: the last scans' poses are not tied to it
-            self._remember(i, ranges, angle_min, angle_increment)
+            self._remember(i, None, self.travel[i], ranges, angle_min, angle_increment)
             self._merge(seg, i, None, abs(angle_increment))
-            return StepResult(pose, len(seg), None)
+            return StepResult(pose, len(seg), None, node=self.dropped + i)
         raw = relative(self.last_odom, odom_l)
-        self.last_odom = odom_l
         d_odo = float(np.hypot(raw[0], raw[1]))
+        prev = self.graph.poses[-1]
+        # predicted from the last tracked scan: the map has corrected the odometry up to it
+        pred, reach = self._predict(odom_l)
+        if len(self.map) and len(seg):
+            corr = correct_pose(seg, self.map.a, self.map.b, pred, reach, P.correction)
+            if (d_odo < P.node_travel and abs(raw[2]) < P.node_turn
+                    and corr.matched_fraction >= P.node_below):
+                self._tracked = (odom_l, relative(prev, corr.pose))
+                self._remember(self.count - 1, self._tracked[1], self.travel[-1] + d_odo,
+                               ranges, angle_min, angle_increment)
+                return StepResult(corr.pose, len(seg), corr, node=self.dropped + self.count - 1,
+                                  offset=self._tracked[1].copy())
+        self.last_odom = odom_l
+        self._tracked = None
         scale, drift = self.scale, self.drift_per_m
         inc = np.array([raw[0] * self.scale, raw[1] * self.scale,
                         raw[2] - self.drift_per_m * d_odo])
-        prev = self.graph.poses[-1]
-        pred = compose(prev, inc)
         step = float(d_odo + 0.3 * abs(inc[2]))
         pose = pred
         cov = None  # no correction: the pose is the prediction
-        if len(self.map) and len(seg):
-            corr = correct_pose(seg, self.map.a, self.map.b, pred, step, P.correction)
+        if corr is not None:
             slipped = None
             if P.slip.enabled and corr.matched_fraction < P.slip.below:
                 slipped = recover(seg, self.map.a, self.map.b, pred, corr, P.correction,
@@ -398,6 +437,7 @@ class Mapper:
                 self.scale += a * (float(np.hypot(got[0], got[1])) / d_odo - self.scale)
         i = self.graph.add_node(pose)
         self.travel.append(self.travel[-1] + d_odo)
+        self.node_scan.append(self.stepped - 1)
         self.odo_step.append((*raw, scale, drift, step, prev[2]))
         self.odo_cov.append(cov if cov is not None else
                             np.diag(1.0 / P.correction.prior_information(step)))
@@ -430,12 +470,22 @@ class Mapper:
         near = corr.near if corr is not None and not optimized else None
         n_seg = len(seg)
         seg = self._without_movers(i, seg)
-        self._remember(i, ranges, angle_min, angle_increment)
+        self._remember(i, None, self.travel[i], ranges, angle_min, angle_increment)
         self._merge(seg, i, near, abs(angle_increment))
         pose = self.graph.poses[i].copy()
         if P.max_nodes and self.count > P.max_nodes:
             self.compact(max(P.max_nodes * 9 // 10, 1))
-        return StepResult(pose, n_seg, corr, loops, optimized)
+        return StepResult(pose, n_seg, corr, loops, optimized, node=self.dropped + self.count - 1)
+
+    def _predict(self, odom_l: np.ndarray) -> tuple[np.ndarray, float]:
+        """The scan's pose predicted by the calibrated odometry from the last tracked scan
+        (or the last node), and the step's length for the correction's prior."""
+        base_odom, off = self._tracked if self._tracked is not None else (self.last_odom, None)
+        raw = relative(base_odom, odom_l)
+        d = float(np.hypot(raw[0], raw[1]))
+        inc = np.array([raw[0] * self.scale, raw[1] * self.scale, raw[2] - self.drift_per_m * d])
+        base = self.graph.poses[-1] if off is None else compose(self.graph.poses[-1], off)
+        return compose(base, inc), float(d + 0.3 * abs(inc[2]))
 
     def _retire(self, got: list) -> None:
         """Keep the contributions of segments aged out as glimpses (``MapParams.age_seen``)
@@ -462,33 +512,37 @@ class Mapper:
         if seg.length[frozen].sum() >= self.params.calib_min_fraction * corr.total_length:
             self.frozen_tie = i
 
-    def _remember(self, i: int, ranges, angle_min: float, angle_increment: float) -> None:
+    def _remember(self, node: int, offset: np.ndarray | None, travel: float, ranges,
+                  angle_min: float, angle_increment: float) -> None:
+        """Keep this scan (a node, or tracked from ``node`` at ``offset``) for the scan
+        differencing of the next ones."""
         P = self.params.moving
         if not P.enabled:
             return
         # a copy: a driver may fill the same buffer again
-        self._recent[i] = (np.array(ranges, dtype=float), float(angle_min),
-                           float(angle_increment))
-        for j in [j for j in self._recent if j < i - P.gap_scans]:
-            del self._recent[j]
+        self._recent[self.stepped] = (node, offset, float(travel), np.array(ranges, dtype=float),
+                                      float(angle_min), float(angle_increment))
+        for k in [k for k in self._recent if k < self.stepped - P.gap_scans]:
+            del self._recent[k]
 
     def _without_movers(self, i: int, seg: Segments) -> Segments:
-        """``seg`` (node i's, laser frame) without the segments that moved in since the
-        newest scan at least ``gap_travel`` m or ``gap_scans`` scans before it (in a
-        chain's first scans, since its oldest)."""
+        """``seg`` (node i's, laser frame, the scan just stepped) without the segments that
+        moved in since the newest scan, node or tracked, at least ``gap_travel`` m or
+        ``gap_scans`` scans before it (in a chain's first scans, since its oldest)."""
         P = self.params.moving
         if not P.enabled or not len(seg) or not self._recent:
             return seg
-        T = self.travel.array()
-        earlier = [j for j in self._recent if j < i]
+        now, t = self.stepped, self.travel[i]
+        earlier = [k for k in self._recent if k < now]
         if not earlier:
             return seg
         # the newest far enough back, else the oldest there is (a chain's first scans)
-        j = max((j for j in earlier if T[i] - T[j] >= P.gap_travel or j <= i - P.gap_scans),
-                default=min(earlier))
+        k = max((k for k in earlier if t - self._recent[k][2] >= P.gap_travel
+                 or k <= now - P.gap_scans), default=min(earlier))
+        node, off, _, *scan = self._recent[k]
+        then = self.graph.poses[node] if off is None else compose(self.graph.poses[node], off)
         pose = self.graph.poses[i]
-        moved = moved_segments(_move(seg.a, pose), _move(seg.b, pose), self.graph.poses[j],
-                               *self._recent[j], P)
+        moved = moved_segments(_move(seg.a, pose), _move(seg.b, pose), then, *scan, P)
         if not moved.any():
             return seg
         self.moved += int(moved.sum())
@@ -521,6 +575,7 @@ class Mapper:
             setattr(g, name, getattr(g, name)[kept])
         self.anchors = sorted({0, *(a - cut for a in self.anchors if a >= cut)})
         self.travel = Column((), float, self.travel[cut:])
+        self.node_scan = Column((), int, self.node_scan[cut:])
         self.odo_step = Column((7,), float, self.odo_step[cut:])
         self.odo_cov = Column((3, 3), float, self.odo_cov[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
@@ -533,7 +588,7 @@ class Mapper:
         self.last_opt -= cut
         self.last_loop -= cut
         self.last_aged -= cut
-        self._recent = {j - cut: v for j, v in self._recent.items() if j >= cut}
+        self._recent = {k: (v[0] - cut, *v[1:]) for k, v in self._recent.items() if v[0] >= cut}
         rn, ra, rb = self._retired
         self._retired = (rn[rn >= cut] - cut, ra[rn >= cut], rb[rn >= cut])
         self.frozen_tie -= cut
@@ -1185,6 +1240,17 @@ def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams
         found.append(EdgeArrays.of(jj[good], ii[good], res.pose[good],
                                    np.broadcast_to(info, (int(good.sum()), 3, 3))))
     return EdgeArrays.concat(found)
+
+
+def scan_poses(nodes: np.ndarray, node: np.ndarray, offset: np.ndarray,
+               online: np.ndarray) -> np.ndarray:
+    """Each scan's final pose: its graph node's (``nodes`` indexed by ``node``), moved by
+    its ``offset`` from that node when it was only tracked; a scan whose node is gone
+    (compacted) keeps its ``online`` pose."""
+    out = np.array(online, dtype=float)
+    ok = (node >= 0) & (node < len(nodes))
+    out[ok] = compose(nodes[node[ok]], offset[ok])
+    return out
 
 
 def _node_slice(nodes: np.ndarray, lo: int, hi: int) -> slice:

@@ -122,10 +122,14 @@ def test_optimize_on_the_intel_log_with_noisy_odometry(shared_data):
     index = {s.stamp_ns: k for k, s in enumerate(scans)}
     ref = np.array([scans[index[int(r[0])]].pose_ref for r in loop.trajectory])
     m = loop.mapper.m
-    assert m.count == len(ref) > 400
-    before = ate(m.poses, ref)["ate_trans_m"]
+    assert 400 < m.count <= len(ref)  # one scan of the log is stamped out of order
+
+    def trajectory():  # every scan's pose: the tracked ones follow their nodes
+        return np.array([r[2:5] for r in loop.trajectory])
+
+    before = ate(trajectory(), ref)["ate_trans_m"]
     got = loop.optimize()
-    after = ate(m.poses, ref)["ate_trans_m"]
+    after = ate(trajectory(), ref)["ate_trans_m"]
     print("Intel 450 scans, seed 1:", got, f"ATE {before:.4f} -> {after:.4f} m")
     assert got["sweep_edges"] > 0 and got["edges"] > got["nodes"]
     assert after < 0.9 * before and after < 0.1, (before, after)

@@ -31,7 +31,8 @@ def test_online_closures_on_intel_agree_with_the_reference():
     loops = np.flatnonzero(g.loop)
     i, j = np.array(g.ei)[loops], np.array(g.ej)[loops]
     z = np.array(g.z)[loops]
-    off = np.hypot(*(z[:, :2] - relative(ref[i], ref[j])[:, :2]).T)
+    scan = m.node_scan.array()  # a scan or two barely moved from the last is no node
+    off = np.hypot(*(z[:, :2] - relative(ref[scan[i]], ref[scan[j]])[:, :2]).T)
     assert len(loops) >= 80, len(loops)       # about 100 online closures
     bad = [(int(a), int(b), round(float(e), 2)) for a, b, e in zip(i, j, off, strict=True)
            if e > 0.5]

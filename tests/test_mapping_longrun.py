@@ -100,7 +100,10 @@ def test_a_passer_by_seen_once_at_a_dense_rate_leaves_no_wall():
     for step, n, age_travel, kept in ((0.05, 40, 1.0, False), (0.05, 40, 0.0, True),
                                       (0.3, 21, 1.0, True)):
         truth = np.column_stack([-2.5 + step * np.arange(n), np.full(n, -1.0), np.zeros(n)])
-        MP = MapperParams(neighbours=NeighbourParams(enabled=False))
+        # every scan a node: the glimpse is mapped, for the aging to judge (a scan tracked
+        # between nodes maps nothing)
+        MP = MapperParams(neighbours=NeighbourParams(enabled=False), node_travel=0.0,
+                          node_turn=0.0)
         MP = replace(MP, moving=replace(MP.moving, enabled=False),  # it would not map it
                      map=replace(MP.map, age_travel=age_travel,
                                  clear=replace(MP.map.clear, enabled=False)))

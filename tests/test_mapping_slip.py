@@ -14,7 +14,7 @@ from cgamap.mapping.correction import correct_pose
 from cgamap.mapping.odometry import integrate_increments, pose_increments
 from cgamap.mapping.posegraph import wrap
 from cgamap.mapping.segments import segments_from_scan
-from cgamap.mapping.slam2d import Mapper, MapperParams
+from cgamap.mapping.slam2d import Mapper, MapperParams, scan_poses
 from cgamap.mapping.slip import SlipParams, recover, shift_votes
 from synth2d import ROOM, scan, scanned_map, world
 
@@ -131,10 +131,13 @@ def _corridor_run(error, at: int, slip: bool | SlipParams):
     MP = MapperParams()
     sp = slip if isinstance(slip, SlipParams) else replace(MP.slip, enabled=slip)
     m = Mapper(replace(MP, slip=sp), initial_pose=truth[0])
+    got = []
     for k, p in enumerate(truth):
         s = scan(w, p, n=180, sigma=0.01, seed=k)
-        m.step(s.ranges, s.angle_min, s.angle_increment, odo[k])
-    X = m.poses
+        got.append(m.step(s.ranges, s.angle_min, s.angle_increment, odo[k]))
+    # every scan's pose: its node's, or tracked from its node
+    X = scan_poses(m.poses, np.array([g.node for g in got]), np.array([g.offset for g in got]),
+                   np.array([g.pose for g in got]))
     turn = np.rad2deg(np.abs(wrap(X[:, 2] - truth[:, 2])))
     return m, np.hypot(*(X[:, :2] - truth[:, :2]).T), turn
 
