@@ -1,7 +1,8 @@
 """2D mapping of a dense run (the simulated loop world, two laps, a 361-beam scan every 5 cm,
-high odometry noise): the per-scan time and the finishing pass's cost when every scan has
-dozens of neighbours, with the pair cap (``NeighbourParams.max_pairs``) as it runs and the
-number of pairs it would take without it."""
+high odometry noise): the per-scan time and the finishing pass's cost, with the pair cap
+(``NeighbourParams.max_pairs``) as it runs and the number of pairs it would take without it;
+with the node gate (``MapperParams.node_travel``: the scans between nodes tracked only) and
+with every scan a node, when each has dozens of neighbours."""
 
 from __future__ import annotations
 
@@ -40,18 +41,24 @@ def run() -> dict:
     from cgamap.mapping.slam2d import MapperParams, neighbour_pairs, round_params
 
     scans, X = dense_run()
-    P = MapperParams()
-    res = build_map(scans, add_odometry_noise(X, "high", 0), P)
-    keys = ("scans_processed", "ms_per_scan_median", "ms_per_scan_p95",
+    odo = add_odometry_noise(X, "high", 0)
+    keys = ("scans_processed", "graph_nodes", "ms_per_scan_median", "ms_per_scan_p95",
             "final_optimisation_ms", "loop_closures", "sweep_closures", "ate_trans_m",
             "ate_rot_deg")
-    out = {"world": "loop", "step_m": STEP_M, "laps": LAPS, "beams": BEAMS,
-           **{k: res.report[k] for k in keys}}
-    segs = [extract_segments(s.ranges, s.angle_min, s.angle_increment, P.segments)
-            for s in scans]
-    kept = [(s.a, s.b) for s in segs]
-    coarse = round_params(P.neighbours, 0)
-    out["pairs_coarse_round"] = int(len(neighbour_pairs(res.poses, kept, coarse)))
-    out["pairs_coarse_round_uncapped"] = int(len(neighbour_pairs(
-        res.poses, kept, replace(coarse, max_pairs=0))))
+    out: dict = {"world": "loop", "step_m": STEP_M, "laps": LAPS, "beams": BEAMS}
+    # the defaults (a node every 0.5 m or 0.2 rad, the scans between tracked), and every
+    # scan a node (as before the node gate)
+    for name, P in (("nodes_gated", MapperParams()),
+                    ("every_scan_a_node", MapperParams(node_travel=0.0, node_turn=0.0))):
+        res = build_map(scans, odo, P)
+        got = {k: res.report[k] for k in keys}
+        segs = [extract_segments(scans[k].ranges, scans[k].angle_min,
+                                 scans[k].angle_increment, P.segments) for k in res.node_scan]
+        kept = [(s.a, s.b) for s in segs]
+        coarse = round_params(P.neighbours, 0)
+        nodes = res.poses[res.node_scan]
+        got["pairs_coarse_round"] = int(len(neighbour_pairs(nodes, kept, coarse)))
+        got["pairs_coarse_round_uncapped"] = int(len(neighbour_pairs(
+            nodes, kept, replace(coarse, max_pairs=0))))
+        out[name] = got
     return out

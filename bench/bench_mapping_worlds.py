@@ -60,7 +60,9 @@ def _phantoms(res, world, static) -> dict:
     ends = [apply_pose(T, np.column_stack([p, np.zeros(len(p))]))[:, :2] for p in (m.a, m.b)]
     mid = 0.5 * (ends[0] + ends[1])
     ph = segment_distances(mid, static[:, :2], static[:, 2:]).min(axis=1) > 0.25
-    stale = ph & (m.last_seen < n - round(world.path_length / world.speed))
+    # not seen in the last lap: by none of the graph nodes (the scans that were mapped) of it
+    last_lap = np.searchsorted(res.node_scan, n - round(world.path_length / world.speed))
+    stale = ph & (m.last_seen < last_lap)
     length = np.hypot(*(ends[1] - ends[0]).T)
     return {"segments": len(m), "phantoms": int(ph.sum()),
             "phantom_length_m": round(float(length[ph].sum()), 1),

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,6 +28,8 @@ class BuildResult:
     poses: np.ndarray        # (n, 3) estimated laser poses (after the final optimisation)
     stamps: np.ndarray       # (n,) seconds
     report: dict
+    node_scan: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # per graph node,
+    # the scan it was (the others were tracked from the node before them)
 
 
 def _stats_ms(ts) -> tuple[float, float]:
@@ -82,6 +84,10 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
     say(f"finishing pass over {mapper.count} graph nodes of the {n} scans "
         "(neighbour matching, graph, walls) ...")
     poses = scan_poses(mapper.finish(), node - mapper.dropped, offset, online)
+    # the scans tracked between nodes: matched again, on the finished map
+    for k in np.flatnonzero(np.any(offset != 0.0, axis=1)):
+        poses[k] = mapper.place(scans[k].ranges, scans[k].angle_min, scans[k].angle_increment,
+                                poses[k])
     t_final = time.perf_counter() - t
     say(f"finishing pass done in {t_final:.1f} s")
     med, p95 = _stats_ms(times)
@@ -130,7 +136,7 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         # says which of the two the ATE's disagreement is more likely to come from
         report["icp_agreement"] = icp_agreement(scans, {"estimate": poses, "reference": R}, R)
     stamps = np.array([s.stamp_ns for s in scans], dtype=float) * 1e-9
-    return BuildResult(mapper.map, poses, stamps, report)
+    return BuildResult(mapper.map, poses, stamps, report, mapper.node_scan.array().copy())
 
 
 def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0,

@@ -440,3 +440,26 @@ def test_a_stopped_failed_or_outdated_pass_applies_nothing(kind, fault, tmp_path
     again = c.reply()  # the next pass goes through
     assert again["class"] == "optimize" and FIELDS <= set(again), again
     assert again["edges"] > 0 or fault == "map replaced"  # a loaded map keeps no scans
+
+
+def test_a_tracked_scans_rows_move_with_the_node_before_them():
+    """After a pass, the trajectory row of a scan the mapper only tracked (no node of its
+    own) keeps its pose relative to the node scan before it; rows before the first moved
+    node stay."""
+    from cgamap.mapping.odometry import compose_pose2d, relative
+
+    loop = MappingLoop(cfg())
+    rows = {1: (0.0, 0.0, 0.0), 2: (0.5, 0.0, 0.1), 3: (1.0, 0.1, 0.2), 4: (1.4, 0.2, 0.2),
+            5: (1.8, 0.3, 0.3)}
+    for stamp, p in rows.items():
+        loop.trajectory.append((stamp, 0, *p, 1.0))
+        loop.scan_poses.add(stamp, np.array(p))
+    # nodes at stamps 3 and 5 moved; 4 was tracked from 3, 1 and 2 are older
+    moved = {3: np.array([1.1, 0.0, 0.25]), 5: np.array([1.9, 0.2, 0.35])}
+    loop._retrace(moved)
+    got = {int(r[0]): np.array(r[2:5]) for r in loop.trajectory}
+    assert np.allclose(got[1], rows[1]) and np.allclose(got[2], rows[2])
+    assert np.allclose(got[3], moved[3]) and np.allclose(got[5], moved[5])
+    want = compose_pose2d(moved[3], relative(np.array(rows[3]), np.array(rows[4])))
+    assert np.allclose(got[4], want)
+    assert np.allclose(loop.scan_poses.at(4), want)
