@@ -189,8 +189,8 @@ class NeighbourParams:
 
 # the prior of a tracked scan's correction on the finished map (m, as an odometry step):
 # loose, the walls decide.  The dense 5 cm loop's tracked scans: 4.0 / 2.7 / 2.1 mm RMS with
-# 0.1 / 0.5 / 2 (its nodes 2.3 mm); the hall at 0.25 m spacing: 20 / 16 / 16 mm, with one
-# scan whose long far wall was extracted 3.6 deg askew 19 cm off at 2
+# 0.1 / 0.5 / 2 (its nodes 2.3 mm; 5.4 mm not placed again); the hall's (a scan every 0.5 m,
+# a third of them tracked): 20 / 16 / 16 mm, one of them 18-19 cm off with any
 PLACE_STEP = 0.5
 
 
@@ -293,9 +293,9 @@ class Mapper:
         self.slips = 0           # scans recovered from a slip (:mod:`.slip`)
         self.cleared = 0         # map segments the laser saw through, dropped (:mod:`.free_space`)
         self.moved = 0           # scan segments not mapped: they had moved in (:mod:`.moving`)
-        # the last scans' ranges by node (the same chain only), for :mod:`.moving`
-        # by scan number (``stepped``), tracked scans too: (node, offset from it, odometry
-        # travel, ranges, angle_min, angle_increment)
+        # the last scans (the same chain only), for :mod:`.moving`, by scan number
+        # (``stepped``), tracked ones too: (node, offset from it or None, odometry travel,
+        # ranges, angle_min, angle_increment)
         self._recent: dict[int, tuple] = {}
         # the last scan whose correction matched mostly frozen map segments (created before
         # this run's nodes): the free-space test's tie for them (:mod:`.free_space`)
