@@ -209,3 +209,42 @@ def test_the_facing_span_is_the_earlier_pass_ahead_of_the_robot():
     assert m._facing(same, 31, 10, 20) is None
     narrow = Mapper(MapperParams(loop=replace(LoopParams(), view_nodes=3)))
     assert narrow._facing(X, 31, 10, 20) == (7, 11)
+
+
+def _drifted_closure(drift_jump: float, travel: float):
+    """Node 2 closes with node 0 in a room with a notch (nothing repeats), the mapper's pose
+    of it 5 m and 10 degrees off after ``travel`` metres untied: the relocalised pose, or
+    None, and the mapper's counts."""
+    from cgamap.mapping.posegraph import Column
+    from cgamap.mapping.segments import extract_segments
+    from synth2d import scanned_map, world
+
+    w = world([(-4, -3, 6, -3), (6, -3, 6, 4), (6, 4, 1, 4), (1, 4, 1, 2), (1, 2, -1, 2),
+               (-1, 2, -1, 4), (-1, 4, -4, 4), (-4, 4, -4, -3)])
+    sub = scanned_map(w, [(0.0, 0.0, 0.0), (2.0, 0.5, 0.0)])
+    truth = np.array([1.5, -0.5, 0.4])
+    s = scan(w, truth, n=180)
+    m = Mapper(MapperParams(loop=replace(LoopParams(), drift_jump=drift_jump)))
+    m.travel = Column((), float, np.array([0.0, travel / 2, travel]))
+    seg = extract_segments(s.ranges, s.angle_min, s.angle_increment, m.params.segments)
+    guess = truth + np.array([4.0, 3.0, np.deg2rad(10.0)])
+    return m._closure_by_relocalising(seg, sub, guess, 2, 0), m
+
+
+def test_the_jump_allowance_grows_with_the_travel_since_the_chain_was_tied():
+    """``LoopParams.drift_jump``: after 200 m of travel since the earlier visit, the mapper's
+    pose may be 5 m off; the closure moves it back (3 m + 3 % of 200 m allows 9 m).  With
+    no allowance for the travel, or only 20 m travelled, the true pose is out of reach."""
+    got, m = _drifted_closure(0.03, 200.0)
+    assert m._reach(2, 0) == 3.0 + 0.03 * 200.0
+    assert got is not None, m.loop_stats
+    assert np.hypot(*(got.pose[:2] - (1.5, -0.5))) < 0.05 and abs(got.pose[2] - 0.4) < 0.01
+    for dj, travel in ((0.0, 200.0), (0.03, 20.0)):
+        got, m = _drifted_closure(dj, travel)
+        # nothing within reach, or only a poor fit there
+        refused = m.loop_stats["no_pose"] + m.loop_stats["low_score"]
+        assert got is None and refused == 1, (dj, travel, m.loop_stats)
+    # tied later by a closure: the travel counts from there
+    got, m = _drifted_closure(0.03, 200.0)
+    m.last_loop = 1
+    assert m._reach(2, 0) == 3.0 + 0.03 * 100.0
