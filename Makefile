@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP_RUN := $(VENV)/.stamp-run
 STAMP_TEST := $(VENV)/.stamp-test
 
-.PHONY: demo test bench fuzz lint clean
+.PHONY: demo test bench data-extra fuzz lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,11 @@ test: $(STAMP_TEST)
 
 bench: $(STAMP_TEST)
 	$(BIN)/python -m bench.run --out bench/results.json
+
+# real data beyond ../shared/data (the MIT Killian Court log), into $$CGAMAP_EXTRA_DATA or
+# ~/.cache/cgamap/data: bench_mapping_killian reads it from there
+data-extra: $(STAMP_TEST)
+	$(BIN)/python -m bench.extra_data
 
 fuzz: $(STAMP_TEST)
 	CGAMAP_FUZZ_EXAMPLES=200000 $(BIN)/python -m pytest -m slow tests -k fuzz
