@@ -248,3 +248,56 @@ def test_the_jump_allowance_grows_with_the_travel_since_the_chain_was_tied():
     got, m = _drifted_closure(0.03, 200.0)
     m.last_loop = 1
     assert m._reach(2, 0) == 3.0 + 0.03 * 100.0
+
+
+def _drifted_return(loop: LoopParams):
+    """The simulated campus (facades and trees: nothing repeats) driven 60 m, every scan a
+    node and no closures; then a scan back at node 6's place, the mapper's pose of it 7 m
+    and 5 degrees off after 300 m untied.  Loop closing, as ``loop`` says, is then tried on
+    that node once: the mapper, its node, and each scan's true pose."""
+    from cgamap.drivers.sim.scanlog import simulated_scans
+    from cgamap.mapping.segments import extract_segments
+
+    scans = simulated_scans(get_world("campus"), laps=0.31, period=1.0)[:60]
+    truth = np.array([s.pose_ref for s in scans])
+    back = truth[6] + np.array([0.3, -0.2, 0.5])
+    m = Mapper(MapperParams(loop=replace(LoopParams(), enabled=False),
+                            neighbours=NeighbourParams(enabled=False),
+                            node_travel=0.0, node_turn=0.0), initial_pose=truth[0])
+    s = scan(get_world("campus"), back, n=180, sigma=0.01, max_range=80.0)
+    for k, sc in enumerate([*scans, s]):
+        m.step(sc.ranges, sc.angle_min, sc.angle_increment, truth[k] if k < 60 else back)
+    i = m.count - 1
+    m.graph.poses[i] = back + np.array([5.0, 5.0, np.deg2rad(5.0)])
+    m.travel[i] = m.travel[i - 1] + 300.0
+    m.params = replace(m.params, loop=loop)
+    seg = extract_segments(s.ranges, s.angle_min, s.angle_increment, m.params.segments)
+    orig, m.sizes = m._closure_by_relocalising, []
+
+    def nearby_fails(seg, sub, guess, i, j):
+        # in the open campus a nearby visit's few scans see the whole place: made to fail
+        # here, as a look-alike's or a too-small submap's would
+        m.sizes.append(len(sub))
+        return orig(seg, sub, guess, i, j) if m.loop_stats["region_tried"] else None
+
+    m._closure_by_relocalising = nearby_fails
+    m._closure_by_tracking = lambda *a: None
+    m._close_loops(i, seg, 0.0)
+    return m, i, np.vstack([truth, back])
+
+
+def test_after_long_drift_the_whole_region_is_searched():
+    """``LoopParams.region_reach``: 300 m untied allows a 12 m jump, and the nearest earlier
+    nodes by the drifted pose are not where the robot is.  All earlier nodes within the
+    allowance are searched at once (when the nearby visits place nothing), and the closure
+    lands on the true pose."""
+    m, i, truth = _drifted_return(replace(LoopParams(), every=1))
+    assert m.loop_stats["region_tried"] == 1, m.loop_stats
+    assert m.sizes[-1] > max(m.sizes[:-1]), m.sizes  # the region: more visits than the wide
+    assert m.loop_stats["region"] == 1, m.loop_stats
+    j = int(m.graph.ei[-1])
+    assert m.graph.ej[-1] == i and m.graph.loop[-1]
+    err = relative(relative(truth[j], truth[i]), m.graph.z[-1])
+    assert np.hypot(err[0], err[1]) < 0.1 and abs(err[2]) < 0.01, err
+    off, _, _ = _drifted_return(replace(LoopParams(), every=1, region_reach=0.0))
+    assert off.loop_stats["region_tried"] == 0
