@@ -199,3 +199,49 @@ def icp_agreement(scans, trajectories: dict, guess: np.ndarray,
            for name, X in trajectories.items()}
     out["icp_both_ways"] = figures(np.array(back).reshape(-1, 3))
     return out
+
+
+def wall_squareness(walls, poses: np.ndarray, min_length: float = 1.5,
+                    window_deg: float = 8.0, block: int = 250) -> dict:
+    """A yardstick that needs no reference poses: how square the walls come out in a
+    building of right angles.  Each scan's walls (``walls[k]`` = (a, b) end points (m, 2) in
+    its laser frame; those ``min_length`` m and longer) are turned by their scan's heading in
+    ``poses``; the building's axes are the length-weighted mean direction modulo 90°, and a
+    wall within ``window_deg`` of an axis deviates from it by what its scan's heading is off
+    (plus its own fit noise).  Returns the axis (``axis_deg``, 0-90), the length-weighted
+    RMS deviation (``rms_deg``), the share of wall length near an axis (``on_axes``; walls
+    beyond the window, a building's own oblique ones, are left out), and the mean deviation
+    of each ``block`` scans' walls (``block_deg``: a heading drift that a loop later shares
+    out shows as blocks off zero; ``worst_block_deg`` the largest).
+
+    Two trajectories of the same scans compare by it directly, whatever their frames: the
+    one whose walls line up better has the truer headings, where a SLAM reference (not
+    ground truth) may itself be off by a degree."""
+    heading = np.asarray(poses, float)[:, 2]
+    ang, w, which = [], [], []
+    for k, (a, b) in enumerate(walls):
+        d = np.asarray(b, float) - np.asarray(a, float)
+        length = np.hypot(d[:, 0], d[:, 1])
+        m = length >= min_length
+        ang.append(np.arctan2(d[m, 1], d[m, 0]) + heading[k])
+        w.append(length[m])
+        which.append(np.full(int(m.sum()), k))
+    a, w, which = np.concatenate(ang), np.concatenate(w), np.concatenate(which)
+    if not len(a):
+        return {"walls": 0}
+    axis = float(np.angle(np.sum(w * np.exp(4j * a)))) / 4.0    # direction modulo 90 deg
+    dev = (a - axis + np.pi / 4) % (np.pi / 2) - np.pi / 4
+    near = np.abs(dev) <= np.radians(window_deg)
+    wn, dn, kn = w[near], dev[near], which[near]
+    blocks = []
+    for k0 in range(0, len(heading), block):
+        m = (kn >= k0) & (kn < k0 + block)
+        if wn[m].sum() > 0:
+            blocks.append(round(float(np.degrees(np.sum(wn[m] * dn[m]) / wn[m].sum())), 3))
+    return {"walls": int(near.sum()),
+            "axis_deg": round(float(np.degrees(axis)) % 90.0, 3),
+            "rms_deg": round(float(np.degrees(np.sqrt(np.sum(wn * dn ** 2) / wn.sum()))), 3)
+            if wn.sum() > 0 else None,
+            "on_axes": round(float(wn.sum() / w.sum()), 3),
+            "block_deg": blocks,
+            "worst_block_deg": max((abs(b) for b in blocks), default=None)}

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .evaluation import align_rigid_2d, apply_pose, ate, icp_agreement, rpe
+from .evaluation import align_rigid_2d, apply_pose, ate, icp_agreement, rpe, wall_squareness
 from .jit import warm_up
 from .linemap import LineMap
 from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
@@ -117,6 +117,7 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
     if mapper.calibration:
         report["odometry_calibration"] = calibration_figures(mapper.calibration)
     ref = [getattr(s, "pose_ref", None) for s in scans]
+    R = None
     if n >= 2 and all(r is not None for r in ref):
         say("scoring against the log's reference poses (ATE, RPE, ICP agreement) ...")
         R = np.array(ref, dtype=float)
@@ -135,8 +136,27 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         # estimate and the reference each follow raw-point ICP between consecutive scans
         # says which of the two the ATE's disagreement is more likely to come from
         report["icp_agreement"] = icp_agreement(scans, {"estimate": poses, "reference": R}, R)
+    if n >= 2:
+        # with or without reference poses: how square the walls come out along the estimate,
+        # the odometry and (when the log has one) the reference
+        say("scoring the walls' squareness ...")
+        tracks = {"estimate": poses, "odometry": odometry}
+        if R is not None:
+            tracks["reference"] = R
+        report["squareness"] = squareness(scans, tracks, mapper.params.segments)
     stamps = np.array([s.stamp_ns for s in scans], dtype=float) * 1e-9
     return BuildResult(mapper.map, poses, stamps, report, mapper.node_scan.array().copy())
+
+
+def squareness(scans: Sequence, trajectories: dict, params: SegmentParams | None = None
+               ) -> dict:
+    """:func:`.evaluation.wall_squareness` of each trajectory (n, 3) over the scans' walls."""
+    walls = []
+    for s in scans:
+        seg = extract_segments(s.ranges, s.angle_min, s.angle_increment, params)
+        walls.append((seg.a, seg.b))
+    return {name: wall_squareness(walls, np.asarray(X, float))
+            for name, X in trajectories.items()}
 
 
 def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0,
