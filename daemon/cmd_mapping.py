@@ -170,7 +170,11 @@ def run_build(args: argparse.Namespace) -> int:
     if not args.quiet:
         keys = ("scans_processed", "segments", "ms_per_scan_median", "ate_trans_m",
                 "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg")
-        print(" ".join(f"{k}={report[k]}" for k in keys if k in report), file=sys.stderr)
+        line = " ".join(f"{k}={report[k]}" for k in keys if k in report)
+        sq = report.get("squareness", {}).get("estimate", {}).get("rms_deg")
+        if sq is not None:  # a log without reference poses still gets this one figure
+            line += f" wall_squareness_deg={sq}"
+        print(line, file=sys.stderr)
     print(out / "map.json")
     return 0
 

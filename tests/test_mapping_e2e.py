@@ -173,6 +173,7 @@ def test_cli_build_says_what_it_does_after_the_scans(short_log, tmp_path, capsys
     assert re.search(r"map build: finishing pass over \d+ graph nodes of the 120 scans", err)
     assert "map build: finishing pass done in" in err
     assert err.index("finishing pass done") < err.index("scoring against the log's reference")
+    assert re.search(r"ate_trans_m=[\d.]+ .* wall_squareness_deg=[\d.]+\n", err)
 
 
 def test_cli_usage_errors(tmp_path, capsys):
