@@ -64,9 +64,14 @@ def warm_up() -> float:
                    float(beams[1] - beams[0]))
     # relocalisation's line-pair solve and hypothesis score (a trial or the daemon's first
     # relocalisation must not pay for their compilation)
-    from .relocalize import DistanceField, _pair_translations, _score
+    from .relocalize import DistanceField, _branch_and_bound, _pair_translations, _score
     one = np.ones((1, 2))
     _pair_translations(one, one, *(np.ones(1),) * 2, one, *(np.ones(1),) * 2, one,
                        *(np.ones(1),) * 4, 1.0, 1.0)
     _score(DistanceField(lmap, 0.05), seg.points, np.zeros((1, 2)), np.zeros(1), 0.2)
+    # a big map's coarse-to-fine sweep
+    idx = np.zeros((1, 1), np.int64)
+    _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,
+                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.int64), 0, 0,
+                      np.zeros((3, 1, 1), np.int64))
     return time.perf_counter() - t0

@@ -94,6 +94,12 @@ class RelocParams:
     sweep_cells: int = 20             # best cells of a correlative sweep per rotation (0: off)
     sweep_grid: float = 0.25          # cell of the sweep (m)
     sweep_points: int = 20            # scan points correlated by the sweep
+    # a sweep window of more positions than this (a big building's map) is swept coarse to
+    # fine: cells of sweep_coarse x sweep_coarse positions first, each with a bound on its
+    # positions' counts, and only the cells whose bound reaches the best counts are counted
+    # position by position (the same k best per rotation as counting every position)
+    sweep_direct: int = 60_000
+    sweep_coarse: int = 3
     # point-based verification (on unless off): the best coarse candidates are pulled in by
     # a batched point-to-segment ICP against the map's nearest segments, re-ranked, and the
     # best dozen refined on all points (instead of the segment correction + grid polish;
@@ -207,18 +213,24 @@ class DistanceField:
             return sid, e, dseg, ok, ux, uy, t, L
         return sid, e, dseg, ok
 
-    def padded_mask(self, thr: float, pad_m: float = 30.0) -> tuple[int, np.ndarray]:
+    def padded_mask(self, thr: float, pad_m: float = 30.0,
+                    dilate: int = 0) -> tuple[int, np.ndarray]:
         """(pad, near-wall mask ``dist < thr`` with ``pad`` false pixels on every side):
-        shifted slices of it read points up to ``pad_m`` metres from the laser.  Not cached:
-        only :meth:`phase_stack` (cached) reads it."""
+        shifted slices of it read points up to ``pad_m`` metres from the laser.  With
+        ``dilate`` d, a pixel holds the mask's maximum over the square of the d + 1 pixels
+        from it down and right (a max-pool: read at one position, it bounds the mask read at
+        any position up to d pixels further on either axis).  Not cached: only
+        :meth:`phase_stack` (cached) reads it."""
         pad = int(np.ceil(pad_m / self.res))
         m = np.zeros((self.dist.shape[0] + 2 * pad + 1, self.dist.shape[1] + 2 * pad + 1),
                      np.uint8)
         m[pad: pad + self.dist.shape[0], pad: pad + self.dist.shape[1]] = self.dist < thr
+        if dilate:
+            m = cv2.dilate(m, np.ones((dilate + 1, dilate + 1), np.uint8), anchor=(0, 0))
         return pad, m
 
-    def phase_stack(self, thr: float, step: int,
-                    tight: float | None = None) -> tuple[int, np.ndarray]:
+    def phase_stack(self, thr: float, step: int, tight: float | None = None,
+                    dilate: int = 0) -> tuple[int, np.ndarray]:
         """(pad, the padded near-wall mask split into its step x step sampling phases, stacked):
         ``stack[py * step + px, j, i]`` is ``mask[py + j * step, px + i * step]``, so a read of
         the mask at a stride of ``step`` pixels from any offset is a window of one phase, and
@@ -226,15 +238,17 @@ class DistanceField:
         (cached per map, uint8: a sum of a few dozen 0/1 reads never overflows).  With
         ``tight``, a pixel holds 16 (within ``thr``) + 1 (within ``tight``): a sum over at
         most 15 points is then the wide count and the tight count in one byte, ordered by
-        the wide count first."""
-        key = (round(thr, 4), step, None if tight is None else round(tight, 4))
+        the wide count first.  ``dilate``: of the max-pooled mask (:meth:`padded_mask`), the
+        bounds of a coarse-to-fine sweep."""
+        key = (round(thr, 4), step, None if tight is None else round(tight, 4), dilate)
         cache = self._stacks
         if key not in cache:
-            pad, m = self.padded_mask(thr)
+            pad, m = self.padded_mask(thr, dilate=dilate)
             if tight is not None:
-                m = m * np.uint8(16) + self.padded_mask(tight)[1]
+                m = m * np.uint8(16) + self.padded_mask(tight, dilate=dilate)[1]
             ny, nx = self.grid_shape(step)
-            hs, ws = 2 * pad // step + ny + 1, 2 * pad // step + nx + 1
+            # one row and column more than the grid: a coarse sweep's last cell reaches there
+            hs, ws = 2 * pad // step + ny + 2, 2 * pad // step + nx + 2
             st = np.zeros((step * step, hs, ws), np.uint8)
             for py in range(step):          # step^2 strided copies, once per map
                 for px in range(step):
@@ -796,15 +810,18 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
     c, s = np.cos(rots)[:, None], np.sin(rots)[:, None]
     ox = np.round((c * pts[:, 0] - s * pts[:, 1]) / res).astype(np.int64) + pad   # (R, N)
     oy = np.round((s * pts[:, 0] + c * pts[:, 1]) / res).astype(np.int64) + pad
-    phase = (oy % step) * step + ox % step
-    qy, qx = oy // step, ox // step
     k = P.sweep_cells
     cand_s, cand_y, cand_x = [], [], []
     for y0, x0, h, w in windows:     # usually one box; a few for scattered maps
-        view = np.lib.stride_tricks.sliding_window_view(stack, (h, w), axis=(1, 2))
-        acc = np.zeros((len(rots), h, w), np.uint8 if len(pts) < 256 else np.uint16)
-        for j in range(len(pts)):    # a loop over the few sampled points, not over cells
-            acc += view[phase[:, j], qy[:, j] + y0, qx[:, j] + x0]
+        if h * w > P.sweep_direct and P.sweep_coarse > 1:
+            sc, iy, ix = _coarse_to_fine(field, stack, thr, tight, step, P.sweep_coarse,
+                                         oy, ox, (y0, x0, h, w),
+                                         None if reach is None else band, k)
+            cand_s.append(sc)
+            cand_y.append(iy + y0)
+            cand_x.append(ix + x0)
+            continue
+        acc = _window_counts(stack, oy, ox, step, (y0, x0, h, w))
         if reach is None:
             # the line path's dozen rotations: a plain partition per rotation over the
             # whole grid (its picks among tied counts are the ones the success rates were
@@ -826,6 +843,146 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
         gy, gx = np.take_along_axis(gy, top, 1), np.take_along_axis(gx, top, 1)
     T = field.lo + np.stack([gx.ravel(), gy.ravel()], -1) * step * res
     return T, np.repeat(np.asarray(rots, float), gy.shape[1])
+
+
+def _window_counts(stack: np.ndarray, oy: np.ndarray, ox: np.ndarray, step: int,
+                   window: tuple[int, int, int, int]) -> np.ndarray:
+    """The sweep's count at every position of one window (row y0, column x0, h x w positions
+    of the grid at ``step`` pixels) for every rotation: (R, h, w).  ``stack``: the phase
+    stack at ``step``; ``oy``, ``ox`` (R, N): the points' pixel offsets under each rotation
+    (pad included).  One fancy index per point over a sliding-window view reads the point's
+    window of the mask for all rotations at once: a loop over the few sampled points, not
+    over positions."""
+    y0, x0, h, w = window
+    R, N = oy.shape
+    phase = (oy % step) * step + ox % step
+    qy, qx = oy // step + y0, ox // step + x0
+    view = np.lib.stride_tricks.sliding_window_view(stack, (h, w), axis=(1, 2))
+    acc = np.zeros((R, h, w), np.uint8 if N < 256 else np.uint16)
+    for j in range(N):
+        acc += view[phase[:, j], qy[:, j], qx[:, j]]
+    return acc
+
+
+def _coarse_to_fine(field: DistanceField, stack: np.ndarray, thr: float,
+                    tight: float | None, step: int, f: int, oy: np.ndarray, ox: np.ndarray,
+                    window: tuple[int, int, int, int], band: np.ndarray | None,
+                    k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_sweep`'s k best positions per rotation in one window (row y0, column x0, h x w
+    positions of the grid) by their count, ties by each position's fixed byte
+    (:func:`_tie_noise`; :func:`_top_cells` finds the same counts, its ties settled per
+    column), without counting every position: a coarse cell of f x f positions is
+    first counted on the max-pooled mask (:meth:`DistanceField.phase_stack` with
+    ``dilate``), which bounds each of its positions' counts; cells are then counted position
+    by position, best bound first, until no cell left could hold a count that reaches the
+    k-th best found (branch and bound, one level: :func:`_branch_and_bound`).  ``oy``, ``ox``
+    (R, N): the points' pixel offsets under each rotation (pad included); ``stack``: the
+    fine phase stack; ``band`` (the grid's shape): positions off it count zero.  Returns
+    counts, rows and columns (R, k), the positions relative to the window."""
+    y0, x0, h, w = window
+    R = len(oy)
+    S = f * step
+    _, stack_c = field.phase_stack(thr, S, tight, dilate=(f - 1) * step)
+    hc, wc = -(-h // f), -(-w // f)
+    # the coarse grid starts at the window's corner: each point's pixel offset from there
+    bound = _window_counts(stack_c, oy + y0 * step, ox + x0 * step, S, (0, 0, hc, wc))
+    ok = (np.ones((h, w), bool) if band is None
+          else np.ascontiguousarray(band[y0: y0 + h, x0: x0 + w]))
+    if band is not None:
+        bw = np.zeros((hc * f, wc * f), bool)
+        bw[:h, :w] = ok
+        bound *= bw.reshape(hc, f, wc, f).any(axis=(1, 3))
+    out = np.zeros((3, R, k), np.int64)
+    _branch_and_bound(bound.astype(np.int32), stack, (oy % step) * step + ox % step,
+                      oy // step + y0, ox // step + x0, ok, f, k, _TIE_NOISE.astype(np.int64),
+                      y0, x0, out)
+    return out[0].astype(np.int32), out[1], out[2]
+
+
+@kernel
+def _branch_and_bound(bound, stack, phase, qy, qx, ok, f, k, noise, y0, x0, out):
+    """Per rotation r: the coarse cells bucketed by their bound (``bound[r]``), counted
+    position by position from the highest bound down (:func:`_coarse_to_fine`), while the
+    bound still reaches the k-th best count so far; then the k best positions by count and
+    tie byte (``noise``, as :func:`_tie_noise`) into ``out`` (counts, rows, columns: (3, R,
+    k)), the last one repeated where fewer than k positions were counted."""
+    R, hc, wc = bound.shape
+    h, w = ok.shape
+    n_pts = phase.shape[1]
+    for r in range(R):
+        b = bound[r].ravel()
+        top = 0
+        for c in range(b.size):
+            top = max(top, b[c])
+        hist = np.zeros(top + 2, np.int64)
+        for c in range(b.size):
+            hist[b[c]] += 1
+        start = np.zeros(top + 2, np.int64)     # cells by descending bound: bucket offsets
+        for v in range(top - 1, -1, -1):
+            start[v] = start[v + 1] + hist[v + 1]
+        fill = start.copy()
+        order = np.empty(b.size, np.int64)
+        for c in range(b.size):
+            order[fill[b[c]]] = c
+            fill[b[c]] += 1
+        seen = np.zeros(top + 1, np.int64)      # counted positions per count
+        cap = 1024
+        cnt = np.empty(cap, np.int64)
+        py = np.empty(cap, np.int64)
+        px = np.empty(cap, np.int64)
+        m = 0
+        kth = 0
+        level = top
+        while level >= max(kth, 1):
+            for t in range(start[level], start[level] + hist[level]):
+                cy, cx = divmod(order[t], wc)
+                for dy in range(f):
+                    gy = cy * f + dy
+                    if gy >= h:
+                        break
+                    for dx in range(f):
+                        gx = cx * f + dx
+                        if gx >= w:
+                            break
+                        if not ok[gy, gx]:
+                            continue
+                        acc = 0
+                        for j in range(n_pts):
+                            acc += stack[phase[r, j], qy[r, j] + gy, qx[r, j] + gx]
+                        if m == cap:
+                            cap *= 2
+                            cnt2, py2, px2 = np.empty(cap, np.int64), np.empty(
+                                cap, np.int64), np.empty(cap, np.int64)
+                            cnt2[:m], py2[:m], px2[:m] = cnt[:m], py[:m], px[:m]
+                            cnt, py, px = cnt2, py2, px2
+                        cnt[m], py[m], px[m] = acc, gy, gx
+                        m += 1
+                        seen[acc] += 1
+            # the k-th best count so far: a cell whose bound is below it cannot change the
+            # k best (a bound equal to it can: ties go by the tie byte)
+            total = 0
+            for v in range(top, -1, -1):
+                total += seen[v]
+                if total >= k:
+                    kth = v
+                    break
+            level -= 1
+        key = np.full(m, -1, np.int64)
+        for i in range(m):
+            if cnt[i] >= kth:
+                key[i] = (cnt[i] << 8) | noise[(r * 40503 + (py[i] + y0) * 2654
+                                               + (px[i] + x0) * 97) & 0xFFFF]
+        last = -1
+        for slot in range(k):
+            best = -1
+            for i in range(m):
+                if key[i] >= 0 and (best < 0 or key[i] > key[best]):
+                    best = i
+            if best >= 0:
+                key[best] = -1
+                last = best
+            if last >= 0:
+                out[0, r, slot], out[1, r, slot], out[2, r, slot] = cnt[last], py[last], px[last]
 
 
 def _polish(field: DistanceField, pts: np.ndarray, pose: np.ndarray, inlier: float,

@@ -14,12 +14,15 @@ from cgamap.mapping.relocalize import (
     DistanceField,
     Hypothesis,
     RelocParams,
+    _coarse_to_fine,
     _crossings,
     _fallback_sweep,
     _icp,
     _ranked,
     _reach,
+    _tie_noise,
     _top_cells,
+    _window_counts,
     relocalize,
 )
 from cgamap.mapping.segments import Segments, segments_from_scan
@@ -258,3 +261,66 @@ def test_phase_stack_reads_the_mask_at_a_stride_with_the_tight_count_in_the_low_
     _, plain = f.phase_stack(0.41, step)
     assert set(np.unique(plain).tolist()) <= {0, 1}
     assert int(plain.sum()) == np.count_nonzero(stack >= 16)
+
+
+def _rooms_map() -> tuple[LineMap, list]:
+    """A 5 x 4 grid of rooms 9 m apart, no two alike (their sizes and a cabinet's place
+    differ): a map of about 45 x 36 m, whose sweep grid is big enough to be swept coarse to
+    fine."""
+    walls = []
+    for i in range(5):
+        for j in range(4):
+            x0, y0 = 9.0 * i, 9.0 * j
+            x1, y1 = x0 + 5.0 + 0.4 * i, y0 + 4.0 + 0.5 * j
+            walls += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
+            c = 0.3 + 0.2 * (i + 2 * j) % 3.0
+            walls.append((x0 + c, y0 + 1.0, x0 + c + 1.2, y0 + 1.0 + 0.1 * j))
+    return _segment_map(walls), walls
+
+
+@pytest.mark.parametrize("tight", [None, 0.2])
+@pytest.mark.parametrize("f", [2, 3, 5])
+def test_coarse_to_fine_sweep_finds_the_best_positions(f, tight):
+    # counting only the coarse cells whose bound reaches the k-th best count gives the k
+    # best positions of every rotation that counting every position gives, ties settled by
+    # the same byte per position; in the band, and (no band) over the whole grid
+    m, walls = _rooms_map()
+    field = DistanceField(m, 0.05)
+    p = np.array([20.7, 11.6, 0.4])
+    seg = segments_from_scan(scan(world(walls), p, n=360, fov=2 * np.pi, sigma=0.005, seed=2))
+    pts = seg.points[:: max(1, len(seg.points) // 15)][:15]
+    rots = np.radians(np.arange(0.0, 360.0, 7.5))
+    step, k = 5, 20
+    pad, stack = field.phase_stack(0.38, step, tight)
+    c, s = np.cos(rots)[:, None], np.sin(rots)[:, None]
+    ox = np.round((c * pts[:, 0] - s * pts[:, 1]) / 0.05).astype(np.int64) + pad
+    oy = np.round((s * pts[:, 0] + c * pts[:, 1]) / 0.05).astype(np.int64) + pad
+    ny, nx = field.grid_shape(step)
+    band = field.grid_dist(step) <= 4.0
+    for window in [(0, 0, ny, nx), (7, 11, ny - 20, nx - 31)]:
+        y0, x0, h, w = window
+        acc = _window_counts(stack, oy, ox, step, window).astype(np.int64)
+        for b in (None, band):
+            full = acc * b[y0: y0 + h, x0: x0 + w] if b is not None else acc
+            key = (full << 8) | _tie_noise(np.arange(len(rots))[:, None, None],
+                                           np.arange(h)[None, :, None] + y0,
+                                           np.arange(w)[None, None, :] + x0)
+            sc, iy, ix = _coarse_to_fine(field, stack, 0.38, tight, step, f, oy, ox, window,
+                                         b, k)
+            ri = np.arange(len(rots))[:, None]
+            assert np.array_equal(sc, full[ri, iy, ix])           # counts where they say
+            best = np.sort(key.reshape(len(rots), -1), axis=1)[:, -k:]
+            assert np.array_equal(np.sort(key[ri, iy, ix], axis=1), best)
+
+
+def test_relocalisation_swept_coarse_to_fine_finds_the_pose():
+    m, walls = _rooms_map()
+    field = DistanceField(m, 0.05)
+    P = replace(RelocParams(), sweep_direct=0)
+    for k, p in enumerate([(20.7, 11.6, 0.4), (29.2, 20.1, -2.0), (2.5, 2.3, 2.9)]):
+        seg = segments_from_scan(scan(world(walls), p, n=360, fov=2 * np.pi, sigma=0.005,
+                                      seed=k))
+        r = relocalize(m, seg, field, P)
+        assert r.found
+        et, er = _pose_err(r.pose, p)
+        assert et < 0.05 and er < 0.5, (p, r.pose)
