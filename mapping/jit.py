@@ -68,7 +68,8 @@ def warm_up() -> float:
     one = np.ones((1, 2))
     _pair_translations(one, one, *(np.ones(1),) * 2, one, *(np.ones(1),) * 2, one,
                        *(np.ones(1),) * 4, 1.0, 1.0)
-    _score(DistanceField(lmap, 0.05), seg.points, np.zeros((1, 2)), np.zeros(1), 0.2)
+    for soft in (False, True):
+        _score(DistanceField(lmap, 0.05), seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
     # a big map's coarse-to-fine sweep
     idx = np.zeros((1, 1), np.int64)
     _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,

@@ -20,6 +20,7 @@ from cgamap.mapping.relocalize import (
     _icp,
     _ranked,
     _reach,
+    _score,
     _tie_noise,
     _top_cells,
     _window_counts,
@@ -324,3 +325,21 @@ def test_relocalisation_swept_coarse_to_fine_finds_the_pose():
         assert r.found
         et, er = _pose_err(r.pose, p)
         assert et < 0.05 and er < 0.5, (p, r.pose)
+
+
+def test_plain_count_on_the_packed_bits_is_the_distance_fields():
+    # the inlier count read from the packed bits equals the one read from the distance field
+    # itself, for poses all over the map and beyond its edge
+    m, _ = _rooms_map()
+    field = DistanceField(m, 0.05)
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-6, 6, (40, 2))
+    T = rng.uniform(field.lo - 5, field.lo + field.size * field.res + 5, (500, 2))
+    th = rng.uniform(-np.pi, np.pi, 500)
+    for inlier in (0.12, 0.2, 0.5):
+        got = _score(field, pts, T, th, inlier)
+        c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+        gx = c * pts[:, 0] - s * pts[:, 1] + T[:, :1]
+        gy = s * pts[:, 0] + c * pts[:, 1] + T[:, 1:]
+        want = np.mean(field.lookup_xy(gx, gy) < inlier, axis=1)
+        assert np.array_equal(got, want) and 0.0 < want.mean() < 0.5
