@@ -3,7 +3,8 @@
 and far longer stretches between revisits.  ``map build`` as a user runs it, with the log's
 own increments (no noise) and with the ``low`` and ``high`` presets, scored against the
 scans' reference poses (the solution of the log's pose graph); relocalisation on the
-noise-free map (200 trials).  Skipped, with the reason, when the log is absent."""
+noise-free map (200 trials), and the walls' squareness along each trajectory.  Skipped,
+with the reason, when the log is absent."""
 
 from __future__ import annotations
 
@@ -29,7 +30,12 @@ def run() -> dict:
         rep = res.report
         out["runs"][f"{preset}_seed{seed}"] = {
             **{k: rep[k] for k in KEYS}, "online_ate_trans_m": rep["online"]["ate_trans_m"],
-            "odometry_ate_trans_m": rep["odometry"]["ate_trans_m"]}
+            "odometry_ate_trans_m": rep["odometry"]["ate_trans_m"],
+            # the reference-free yardstick: how square the walls come out along the
+            # estimate and along the reference (RMS deviation from the building's axes)
+            "squareness_rms_deg": {k: v.get("rms_deg") for k, v in rep["squareness"].items()},
+            "squareness_worst_block_deg": {k: v.get("worst_block_deg")
+                                           for k, v in rep["squareness"].items()}}
         if preset == "none":
             clean = res
     if clean is not None:
