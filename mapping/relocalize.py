@@ -1128,6 +1128,15 @@ def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
 
 
 @kernel
+def _cell_of(c, s, x, y, tx, ty, lo0, lo1, res):
+    """The grid cell (column, row; floats, maybe off the grid) of scan point (x, y) under
+    the pose of rotation (cos c, sin s) and translation (tx, ty): the nearest cell, as
+    :meth:`DistanceField.lookup_xy` takes it."""
+    return (np.floor((c * x - s * y + tx - lo0) / res + 0.5),
+            np.floor((s * x + c * y + ty - lo1) / res + 0.5))
+
+
+@kernel
 def _count_kernel(bits, nx, lo0, lo1, res, pts, T, th, out):
     """:func:`_score`'s plain count on the packed inlier bits (:meth:`DistanceField.
     inlier_bits`): the same cells, the same answer (off the grid: no inlier)."""
@@ -1137,10 +1146,7 @@ def _count_kernel(bits, nx, lo0, lo1, res, pts, T, th, out):
         c, s = np.cos(th[h]), np.sin(th[h])
         acc = 0
         for j in range(n):
-            gx = c * pts[j, 0] - s * pts[j, 1] + T[h, 0]
-            gy = s * pts[j, 0] + c * pts[j, 1] + T[h, 1]
-            qx = np.floor((gx - lo0) / res + 0.5)
-            qy = np.floor((gy - lo1) / res + 0.5)
+            qx, qy = _cell_of(c, s, pts[j, 0], pts[j, 1], T[h, 0], T[h, 1], lo0, lo1, res)
             if qx >= 0 and qy >= 0 and qx < nx and qy < ny:
                 ix = int(qx)
                 acc += (bits[int(qy), ix >> 3] >> (ix & 7)) & 1
@@ -1158,10 +1164,7 @@ def _score_kernel(dist, lo0, lo1, res, far, pts, T, th, inlier, soft, out):
         c, s = np.cos(th[h]), np.sin(th[h])
         acc = 0.0
         for j in range(n):
-            gx = c * pts[j, 0] - s * pts[j, 1] + T[h, 0]
-            gy = s * pts[j, 0] + c * pts[j, 1] + T[h, 1]
-            qx = np.floor((gx - lo0) / res + 0.5)
-            qy = np.floor((gy - lo1) / res + 0.5)
+            qx, qy = _cell_of(c, s, pts[j, 0], pts[j, 1], T[h, 0], T[h, 1], lo0, lo1, res)
             d = far
             if qx >= 0 and qy >= 0 and qx < nx and qy < ny:
                 d = dist[int(qy), int(qx)]
