@@ -9,13 +9,15 @@ from .intel import LOG, build, missing, scans
 
 
 def run() -> dict:
-    from cgamap.mapping.offline import build_map, relocalize_trials
+    from cgamap.mapping.offline import build_map, relocalize_trials, revisit_agreement
 
     if missing():
         return missing()
     res = build(0)
     log = list(scans())
-    out = {"log": LOG, "odom_noise": "high", "seed": 0, "build": res.report}
+    out = {"log": LOG, "odom_noise": "high", "seed": 0, "build": res.report,
+           # raw-point ICP at the revisits (scans 50 and more apart, within 1 m and 45 deg)
+           "icp_agreement_revisits": revisit_agreement(log, res.poses)}
     # relocalised poses are in the map's frame: scored against the reference after the
     # build's rigid alignment (the ATE gauge), as `cgamap relocalize` does
     out["relocalize"] = relocalize_trials(res.map, log, 200, seed=0,

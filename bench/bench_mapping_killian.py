@@ -3,8 +3,9 @@
 and far longer stretches between revisits.  ``map build`` as a user runs it, with the log's
 own increments (no noise) and with the ``low`` and ``high`` presets, scored against the
 scans' reference poses (the solution of the log's pose graph); relocalisation on the
-noise-free map (200 trials), and the walls' squareness along each trajectory.  Skipped,
-with the reason, when the log is absent."""
+noise-free map (200 trials), the walls' squareness along each trajectory, and raw-point
+ICP's agreement with each at the revisits.  Skipped, with the reason, when the log is
+absent."""
 
 from __future__ import annotations
 
@@ -18,7 +19,12 @@ KEYS = ("ate_trans_m", "ate_rot_deg", "ate_trans_max_m", "rpe_trans_m", "rpe_rot
 
 def run() -> dict:
     from cgamap.drivers.carmen import read_scans
-    from cgamap.mapping.offline import build_map, log_odometry, relocalize_trials
+    from cgamap.mapping.offline import (
+        build_map,
+        log_odometry,
+        relocalize_trials,
+        revisit_agreement,
+    )
 
     if missing():
         return missing()
@@ -35,7 +41,9 @@ def run() -> dict:
             # estimate and along the reference (RMS deviation from the building's axes)
             "squareness_rms_deg": {k: v.get("rms_deg") for k, v in rep["squareness"].items()},
             "squareness_worst_block_deg": {k: v.get("worst_block_deg")
-                                           for k, v in rep["squareness"].items()}}
+                                           for k, v in rep["squareness"].items()},
+            # raw-point ICP at the revisits: is each loop closed as the ranges say
+            "icp_agreement_revisits": revisit_agreement(scans, res.poses)}
         if preset == "none":
             clean = res
     if clean is not None:

@@ -157,11 +157,34 @@ def relations_error(stamps: np.ndarray, poses: np.ndarray, relations: np.ndarray
     return out
 
 
+def revisit_pairs(poses: np.ndarray, min_gap: int = 50, radius: float = 1.0,
+                  turn_deg: float = 45.0) -> np.ndarray:
+    """(m, 2) pairs (earlier, later) of scans taken at least ``min_gap`` scans apart from
+    within ``radius`` m and ``turn_deg`` of each other by ``poses``: for each later scan the
+    nearest such earlier one.  Where a trajectory closed its loops, these are the pairs
+    that say whether it closed them right."""
+    from scipy.spatial import cKDTree
+
+    poses = np.asarray(poses, float)
+    tree = cKDTree(poses[:, :2])
+    out = []
+    for i, near in enumerate(tree.query_ball_point(poses[:, :2], radius)):
+        j = np.array([k for k in near if k <= i - min_gap], dtype=int)
+        if not len(j):
+            continue
+        j = j[np.degrees(np.abs(angle_diff(poses[j, 2], poses[i, 2]))) <= turn_deg]
+        if len(j):
+            out.append((int(j[np.argmin(np.hypot(*(poses[j, :2] - poses[i, :2]).T))]), i))
+    return np.array(out, dtype=int).reshape(-1, 2)
+
+
 def icp_agreement(scans, trajectories: dict, guess: np.ndarray,
-                  params: IcpParams | None = None, max_pairs: int = 1000) -> dict:
-    """How well each trajectory's consecutive relative poses agree with raw-point ICP between
-    the same scans (:mod:`.scan_icp`, started from ``guess``'s relative poses): median and
-    RMS of the translation (m) and rotation (deg) differences per trajectory, and the ICP's own
+                  params: IcpParams | None = None, max_pairs: int = 1000,
+                  pairs: np.ndarray | None = None) -> dict:
+    """How well each trajectory's consecutive relative poses (or those of ``pairs``, (m, 2)
+    scan indices, e.g. :func:`revisit_pairs`) agree with raw-point ICP between the same scans
+    (:mod:`.scan_icp`, started from ``guess``'s relative poses): median and RMS of the
+    translation (m) and rotation (deg) differences per trajectory, and the ICP's own
     consistency (each pair matched both ways, the two results composed; identity when the
     matcher is precise).  A reference that is itself a SLAM output is not ground truth: this
     tells whether the estimate or the reference sits closer to what the ranges say.
@@ -169,17 +192,18 @@ def icp_agreement(scans, trajectories: dict, guess: np.ndarray,
     At most ``max_pairs`` pairs, evenly spread over the run (0: all): two ICPs per pair take
     ~12 ms, and a 12 000-scan log's pairs would take longer than its mapping."""
     n = len(scans)
-    ks = np.arange(1, n)
-    if max_pairs and len(ks) > max_pairs:
-        ks = np.unique(np.linspace(1, n - 1, max_pairs).round().astype(int))
-    need = np.unique(np.concatenate([ks - 1, ks])) if len(ks) else ks
+    P = (np.column_stack([np.arange(n - 1), np.arange(1, n)]) if pairs is None
+         else np.asarray(pairs, int).reshape(-1, 2))
+    if max_pairs and len(P) > max_pairs:
+        P = P[np.unique(np.linspace(0, len(P) - 1, max_pairs).round().astype(int))]
+    need = np.unique(P.ravel())
     pts = {int(k): scan_points(scans[k].ranges, scans[k].angle_min, scans[k].angle_increment,
                                params) for k in need}
     z, back = [], []
-    for k in ks.tolist():
-        g = relative(guess[k - 1], guess[k])
-        f = icp(pts[k], pts[k - 1], g, params)
-        b = icp(pts[k - 1], pts[k], relative(g, np.zeros(3)), params)
+    for a, k in P.tolist():
+        g = relative(guess[a], guess[k])
+        f = icp(pts[k], pts[a], g, params)
+        b = icp(pts[a], pts[k], relative(g, np.zeros(3)), params)
         z.append(f if f is not None else np.full(3, np.nan))
         back.append(compose_pose2d(f, b) if f is not None and b is not None
                     else np.full(3, np.nan))
@@ -195,7 +219,7 @@ def icp_agreement(scans, trajectories: dict, guess: np.ndarray,
                 "rot_median_deg": round(float(np.median(r)), 3),
                 "rot_rms_deg": round(float(np.sqrt(np.mean(r ** 2))), 3)}
 
-    out = {name: figures(relative(Z, relative(np.asarray(X)[ks - 1], np.asarray(X)[ks])))
+    out = {name: figures(relative(Z, relative(np.asarray(X)[P[:, 0]], np.asarray(X)[P[:, 1]])))
            for name, X in trajectories.items()}
     out["icp_both_ways"] = figures(np.array(back).reshape(-1, 3))
     return out

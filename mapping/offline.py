@@ -13,7 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .evaluation import align_rigid_2d, apply_pose, ate, icp_agreement, rpe, wall_squareness
+from .evaluation import (
+    align_rigid_2d,
+    apply_pose,
+    ate,
+    icp_agreement,
+    revisit_pairs,
+    rpe,
+    wall_squareness,
+)
 from .jit import warm_up
 from .linemap import LineMap
 from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
@@ -157,6 +165,21 @@ def squareness(scans: Sequence, trajectories: dict, params: SegmentParams | None
         walls.append((seg.a, seg.b))
     return {name: wall_squareness(walls, np.asarray(X, float))
             for name, X in trajectories.items()}
+
+
+def revisit_agreement(scans: Sequence, poses: np.ndarray, max_pairs: int = 1000) -> dict:
+    """Raw-point ICP agreement (:func:`.evaluation.icp_agreement`) of the estimate ``poses``
+    and, when the scans carry them, the reference poses, at the revisits: the pairs of
+    :func:`.evaluation.revisit_pairs` (by the reference, else by the estimate), where a loop
+    closed wrong or loosely shows."""
+    ref = [getattr(s, "pose_ref", None) for s in scans]
+    tracks = {"estimate": np.asarray(poses, float)}
+    if all(r is not None for r in ref):
+        tracks["reference"] = np.array(ref, dtype=float)
+    guide = tracks.get("reference", tracks["estimate"])
+    pairs = revisit_pairs(guide)
+    return {"revisit_pairs": int(len(pairs)),
+            **icp_agreement(scans, tracks, guide, max_pairs=max_pairs, pairs=pairs)}
 
 
 def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0,

@@ -56,3 +56,25 @@ def test_agreement_tells_the_true_trajectory_from_a_jittered_one():
     # a long run is sampled: pairs evenly spread, the same figures' kind
     few = icp_agreement(scans, {"truth": truth, "jittered": jitter}, jitter, max_pairs=5)
     assert few["truth"]["pairs"] == 5 and few["jittered"]["trans_median_m"] > 0.02
+
+
+def test_revisit_pairs_and_their_agreement():
+    # two laps of the same circle, 12 scans a lap: each second-lap scan revisits its twin of
+    # the first lap (12 scans earlier), within 0.5 m and 45 deg; a map that closed the loop with
+    # its second lap shifted 10 cm agrees with ICP at those pairs 10 cm worse than the truth
+    from cgamap.mapping.evaluation import revisit_pairs
+
+    t = np.linspace(0, 4 * np.pi, 24, endpoint=False)
+    truth = np.column_stack([0.5 + 2.0 * np.cos(t), 0.5 + 1.5 * np.sin(t), t % (2 * np.pi)])
+    truth[12:, :2] += 0.05            # the second lap a little off the first: no twin at 0 m
+    pairs = revisit_pairs(truth, min_gap=6, radius=0.5)
+    assert pairs.tolist() == [[k, k + 12] for k in range(12)]
+    assert len(revisit_pairs(truth, min_gap=13, radius=0.5)) == 0
+    assert len(revisit_pairs(truth, min_gap=6, radius=0.01)) == 0
+    scans = [scan(world(WALLS), p, n=360, fov=2 * np.pi, sigma=0.005, seed=k)
+             for k, p in enumerate(truth)]
+    shifted = truth.copy()
+    shifted[12:, 0] += 0.10
+    out = icp_agreement(scans, {"truth": truth, "shifted": shifted}, truth, pairs=pairs)
+    assert out["truth"]["pairs"] == 12 and out["truth"]["trans_median_m"] < 0.005
+    assert abs(out["shifted"]["trans_median_m"] - 0.10) < 0.01
