@@ -100,6 +100,10 @@ class RelocParams:
     # position by position (the same k best per rotation as counting every position)
     sweep_direct: int = 60_000
     sweep_coarse: int = 3
+    # with a hint (``near``), the sweeps read only the positions and rotations it allows, so
+    # their best cells are the best near it (swept over the whole map, a look-alike place
+    # elsewhere takes them and the hint's neighbourhood gets none)
+    sweep_near: bool = True
     # point-based verification (on unless off): the best coarse candidates are pulled in by
     # a batched point-to-segment ICP against the map's nearest segments, re-ranked, and the
     # best dozen refined on all points (instead of the segment correction + grid polish;
@@ -474,8 +478,15 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             sums_d = np.bincount(which, D, len(cells))[top]
             cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
             cand_R.append(th + sums_d / votes[top])
-    if P.sweep_cells and len(rots):
-        Ts_, Rs_ = _sweep(field, pts, rots, P)
+    box = None
+    sweep_rots = rots
+    if near is not None and P.sweep_near:
+        # only candidates near the hint are kept: the sweep reads only there, for only the
+        # hint's rotations, so its best cells are the best near the hint
+        box = _near_box(near, P.sweep_grid)
+        sweep_rots = rots[np.abs(_wrap(rots - near[0][2])) < near[2] + tol]
+    if P.sweep_cells and len(sweep_rots):
+        Ts_, Rs_ = _sweep(field, pts, sweep_rots, P, box=box)
         cand_T.append(Ts_)
         cand_R.append(Rs_)
     if near is not None:
@@ -496,7 +507,8 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             # the free-space band the all-rotation sweep is restricted to (a bound from
             # the scan's ranges)
             reach = _reach(seg.points, P, field.res)
-            T2, th2, sc2 = _fallback_sweep(field, pts, P, reach)
+            T2, th2, sc2 = _fallback_sweep(
+                field, pts, P, reach, near=near if P.sweep_near else None)
             if near is not None:
                 keep = _near(T2, th2, near)
                 T2, th2, sc2 = T2[keep], th2[keep], sc2[keep]
@@ -533,6 +545,14 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if not hyps or hyps[0].score < P.min_score:
         return RelocResult(False, None, hyps[0].score if hyps else 0.0, hyps)
     return RelocResult(True, hyps[0].pose, hyps[0].score, hyps)
+
+
+def _near_box(near: tuple, cell: float) -> tuple:
+    """The square around a hint (pose, m, rad) that holds every position within its
+    distance, one sweep cell wider (a cell's position stands for poses about it)."""
+    r = near[1] + cell
+    c = np.asarray(near[0][:2], float)
+    return c - r, c + r
 
 
 def _near(T: np.ndarray, th: np.ndarray, near: tuple) -> np.ndarray:
@@ -647,15 +667,21 @@ def _ranked(hyps: list[Hypothesis], P: RelocParams) -> RelocResult:
 
 
 def _fallback_sweep(field: DistanceField, pts: np.ndarray, P: RelocParams,
-                    reach: float | None = None, stats: dict | None = None):
+                    reach: float | None = None, stats: dict | None = None,
+                    near: tuple | None = None):
     """Candidates for a scan whose lines gave no convincing pose (cluttered: its few
     segments are furniture at odd angles, so no line pairing names the rotation): the
-    correlative sweep over all rotations at ``fallback_rot_deg`` steps."""
+    correlative sweep over all rotations at ``fallback_rot_deg`` steps (with ``near``, a
+    hint (pose, m, rad): those within its turn, at positions within its distance)."""
     rots = np.arange(0.0, 2 * np.pi, np.deg2rad(P.fallback_rot_deg))
+    box = None
+    if near is not None:
+        rots = rots[np.abs(_wrap(rots - near[0][2])) < near[2] + np.deg2rad(P.fallback_rot_deg)]
+        box = _near_box(near, P.fallback_grid)
     Q = replace(P, sweep_cells=P.fallback_cells, sweep_grid=P.fallback_grid,
                 sweep_points=P.fallback_points)
     # ties of the wide count (the bound) go to the cell whose own pose fits more points
-    T, th = _sweep(field, pts, rots, Q, reach, stats, tight=P.coarse_dist)
+    T, th = _sweep(field, pts, rots, Q, reach, stats, tight=P.coarse_dist, box=box)
     return T, th, _score(field, pts, T, th, P.coarse_dist)
 
 
@@ -788,7 +814,7 @@ def _top_cells(acc: np.ndarray, k: int, y0: int = 0,
 
 def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocParams,
            reach: float | None = None, stats: dict | None = None,
-           tight: float | None = None):
+           tight: float | None = None, box: tuple | None = None):
     """Translation hypotheses that do not need two scan lines on two map lines: for every
     rotation hypothesis, the scan points are correlated with the map's near-wall mask at every
     position of a coarse grid in the free-space band (within ``reach`` of a wall,
@@ -814,6 +840,8 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
     # a grid position stands for poses up to half a cell's diagonal away
     band, windows = _band_windows(field, step,
                                   None if reach is None else reach + 0.71 * step * res)
+    if box is not None:
+        windows = _clip_windows(windows, field, step, box)
     if stats is not None:
         stats.update(positions=int(sum(h * w for _, _, h, w in windows)),
                      band=int(band.sum()), rotations=int(len(rots)), points=int(len(pts)))
@@ -855,6 +883,22 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
         gy, gx = np.take_along_axis(gy, top, 1), np.take_along_axis(gx, top, 1)
     T = field.lo + np.stack([gx.ravel(), gy.ravel()], -1) * step * res
     return T, np.repeat(np.asarray(rots, float), gy.shape[1])
+
+
+def _clip_windows(windows: list, field: DistanceField, step: int, box: tuple) -> list:
+    """The sweep's windows cut to the grid positions inside ``box`` ((x, y) low corner,
+    (x, y) high corner, m): a relocalisation near a hint sweeps only there."""
+    cell = step * field.res
+    (bx0, by0), (bx1, by1) = (np.asarray(c, float) for c in box)
+    gx0, gx1 = int(np.ceil((bx0 - field.lo[0]) / cell)), int(np.floor((bx1 - field.lo[0]) / cell))
+    gy0, gy1 = int(np.ceil((by0 - field.lo[1]) / cell)), int(np.floor((by1 - field.lo[1]) / cell))
+    out = []
+    for y0, x0, h, w in windows:
+        ya, yb = max(y0, gy0), min(y0 + h - 1, gy1)
+        xa, xb = max(x0, gx0), min(x0 + w - 1, gx1)
+        if ya <= yb and xa <= xb:
+            out.append((ya, xa, yb - ya + 1, xb - xa + 1))
+    return out
 
 
 def _window_counts(stack: np.ndarray, oy: np.ndarray, ox: np.ndarray, step: int,

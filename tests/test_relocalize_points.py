@@ -18,9 +18,11 @@ from cgamap.mapping.relocalize import (
     _crossings,
     _fallback_sweep,
     _icp,
+    _near_box,
     _ranked,
     _reach,
     _score,
+    _sweep,
     _tie_noise,
     _top_cells,
     _window_counts,
@@ -343,3 +345,29 @@ def test_plain_count_on_the_packed_bits_is_the_distance_fields():
         gy = s * pts[:, 0] + c * pts[:, 1] + T[:, 1:]
         want = np.mean(field.lookup_xy(gx, gy) < inlier, axis=1)
         assert np.array_equal(got, want) and 0.0 < want.mean() < 0.5
+
+
+def test_a_hint_keeps_the_sweeps_to_its_neighbourhood():
+    # 24 rooms alike (ROOM repeated 9 m apart) and a cluttered scan (its one segment is not
+    # in the map, so only the sweeps can place it): over the whole map its pose is one of 24
+    # equally good ones; near a hint in the right room the sweeps read only there (every
+    # candidate inside the hint's box, at the hint's rotations) and the scan is placed
+    walls = [(x1 + 9.0 * i, y1 + 9.0 * j, x2 + 9.0 * i, y2 + 9.0 * j)
+             for i in range(6) for j in range(4) for x1, y1, x2, y2 in ROOM]
+    m = _segment_map(walls)
+    field = DistanceField(m, 0.05)
+    p = np.array([-0.5 + 27.0, 0.8 + 9.0, 1.1])
+    seg = _cluttered_scan(np.array([-0.5, 0.8, 1.1]))   # ROOM's scan: the same in every room
+    hint = (p + np.array([0.6, -0.5, 0.15]), 2.0, 0.52)
+    P = RelocParams()
+    rots = np.radians(np.arange(0.0, 360.0, 10.0))
+    T, th = _sweep(field, seg.points, rots, P, box=_near_box(hint, P.sweep_grid))
+    assert len(T) and np.all(np.abs(T - hint[0][:2]) <= 2.0 + P.sweep_grid + 1e-9)
+    reach = _reach(seg.points, P, 0.05)
+    T, th, _ = _fallback_sweep(field, seg.points, P, reach, near=hint)
+    assert len(T) and np.all(np.abs(wrap(th - hint[0][2])) < 0.52 + np.radians(3.0) + 1e-9)
+    r = relocalize(m, seg, field, P, near=hint)
+    assert r.found and _pose_err(r.pose, p)[0] < 0.05 and _pose_err(r.pose, p)[1] < 0.5
+    # whole map: every room fits alike, so the answer cannot name the right one
+    whole = relocalize(m, seg, field, P)
+    assert whole.found and sum(_pose_err(h.pose, p)[0] > 1.0 for h in whole.hypotheses) >= 2
