@@ -170,7 +170,6 @@ class DistanceField:
         self.a, self.b = np.asarray(lmap.a, float), np.asarray(lmap.b, float)
         self._seg_id: np.ndarray | None = None
         self._tab: np.ndarray | None = None    # per segment: a, u, length (built with seg_id)
-        self._flat: np.ndarray | None = None   # dist raveled, one far cell appended
         self._stacks: dict = {}                # phase_stack's, per (thr, step, tight)
         self._bits: dict = {}                  # inlier_bits', per threshold
         self._grid_dist: dict = {}             # grid_dist's, per step
@@ -188,7 +187,9 @@ class DistanceField:
                                                      labelType=cv2.DIST_LABEL_PIXEL)
             ys, xs = np.nonzero(self._img == 0)
             owner = np.maximum(ids[ys, xs], 0)
-            self._seg_id = owner[np.maximum(lab, 1) - 1].astype(np.int32)
+            # int16 where the segments allow: on a big building's map the grid is 10^7 cells
+            self._seg_id = owner[np.maximum(lab, 1) - 1].astype(
+                np.int16 if len(self._pa) <= np.iinfo(np.int16).max else np.int32)
             d = self.b - self.a
             L = np.maximum(np.linalg.norm(d, axis=-1), 1e-9)
             self.u = d / L[:, None]                       # unit directions
@@ -291,15 +292,14 @@ class DistanceField:
         return self.lookup_xy(p[..., 0], p[..., 1])
 
     def lookup_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """:meth:`lookup` for separate coordinate arrays (nearest cell)."""
-        if self._flat is None:
-            # one far cell appended: off-grid points index it
-            self._flat = np.append(self.dist.ravel(), np.float32(self.far))
+        """:meth:`lookup` for separate coordinate arrays (nearest cell).  The field itself
+        is read (no copy with a far cell appended: on a big building's map that was another
+        100 MB), off-grid points answered afterwards."""
         qx = np.floor((x - self.lo[0]) / self.res + 0.5).astype(np.int64)
         qy = np.floor((y - self.lo[1]) / self.res + 0.5).astype(np.int64)
         off = (qx < 0) | (qy < 0) | (qx >= self.size[0]) | (qy >= self.size[1])
-        flat = np.where(off, self.dist.size, qy * self.size[0] + qx)
-        return self._flat[flat]
+        d = self.dist[np.clip(qy, 0, self.size[1] - 1), np.clip(qx, 0, self.size[0] - 1)]
+        return np.where(off, np.float32(self.far), d)
 
 
 def rotation_peaks(phi_g, len_g, phi_l, len_l, bin_deg: float, peaks: int) -> np.ndarray:
