@@ -301,11 +301,15 @@ class MappingLoop:
     """Fuses device messages; ``status()``, ``map_json()``, ``state()`` for the service."""
 
     def __init__(self, cfg: dict, mapper2d: Any | None = None, devices: dict | None = None,
-                 laser_mount: tuple[float, float, float] | None = None):
+                 laser_mount: tuple[float, float, float] | None = None,
+                 lossless: bool = False):
         """``laser_mount`` (x, y, yaw), when given, replaces the laser device's configured
-        mount (a replayed log states its own)."""
+        mount (a replayed log states its own).  ``lossless``: a scan that finds the queue
+        of waiting scans full maps the oldest first instead of dropping it (a replay as fast
+        as the mapper goes: a log of scans alone arrives hundreds at a time)."""
         m = cfg["mapping"]
         self.cfg = cfg
+        self.lossless = lossless
         self.lost_quality = m["lost_quality"]
         self.lost_after = m["lost_after"]
         self.lost_radius = m["lost_radius"]
@@ -394,7 +398,10 @@ class MappingLoop:
                 self.scan_odometry = True
                 self.on_odometry(msg.stamp_ns, msg.pose_odom)
             if len(self.pending) == self.pending.maxlen:
-                self.counts["scans_dropped"] += 1  # the oldest waiting scan goes
+                if self.lossless:     # in log order: the oldest's odometry is in
+                    self._guarded("scan", self.on_scan, self.pending.popleft())
+                else:
+                    self.counts["scans_dropped"] += 1  # the oldest waiting scan goes
             self.pending.append(msg)
         elif isinstance(msg, PanTiltState):
             self.pantilt.append(msg)

@@ -59,7 +59,7 @@ class Daemon:
         self.store = CheckpointStore(self.state_dir)
         # a replayed log's own laser mount (``main.replay_mount``) over the configured one
         self.laser_mount = laser_mount
-        self.loop = MappingLoop(cfg, laser_mount=laser_mount)
+        self.loop = self._new_loop()
         self.supervisor = self._build_supervisor(cfg)
         self.server: QueryServer | None = None
         self.started_mono = time.monotonic()
@@ -73,6 +73,12 @@ class Daemon:
         self._periodic_at = -1  # scans mapped when the last periodic pass started
 
     # -- construction -----------------------------------------------------------------------
+    def _new_loop(self) -> MappingLoop:
+        """The mapping loop: a replay as fast as the mapper goes loses no scan (its source
+        waits for room, and the loop maps a waiting scan rather than drop it)."""
+        return MappingLoop(self.cfg, laser_mount=self.laser_mount,
+                           lossless=bool(self.replay) and self.replay_rate == 0)
+
     def _build_supervisor(self, cfg: dict) -> Supervisor:
         sv = cfg["supervisor"]
         sup = Supervisor(sv["backoff_initial"], sv["backoff_max"])
@@ -215,7 +221,7 @@ class Daemon:
         except (KeyError, TypeError, ValueError) as exc:
             log.warning("checkpoint %s does not fit this build (%s): empty map",
                         payload.get("_file"), exc)
-            self.loop = MappingLoop(self.cfg, laser_mount=self.laser_mount)
+            self.loop = self._new_loop()
 
     def checkpoint(self, reason: str) -> dict:
         try:

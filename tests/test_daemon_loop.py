@@ -381,3 +381,23 @@ def test_a_lost_robot_looks_near_its_pose_first():
     assert fake.reloc_calls == 2 and fake.nears[0] is not None and fake.nears[1] is None
     assert loop.counts["relocalized_near"] == 0 and loop.counts["relocalized"] == 1
     assert loop.current_pose().tolist() == [5.0, 6.0, 0.5]
+
+
+@pytest.mark.parametrize("lossless", [False, True])
+def test_scans_arriving_faster_than_mapped(lossless):
+    # 150 scans handed over at once, each with its odometry (a log of ROBOTLASER1 lines
+    # drained from a replay's queue): a live loop keeps the newest 64 waiting and counts the
+    # rest dropped; a lossless one (a replay as fast as the mapper goes) maps them all
+    loop = MappingLoop(cfg(min_travel=0.0, min_turn=0.0, scan_max_rate=1000.0), devices={},
+                       lossless=lossless)
+    world = get_world("corridor")
+    for i in range(150):
+        s = scan_at(world, 0.05 * i, i, (i + 1) * 10_000_000)
+        x, y, th = world.trajectory(0.05 * i)
+        s.pose_odom = (float(x), float(y), float(th))
+        loop.handle("replay", s)
+    loop.process(final=True)
+    if lossless:
+        assert loop.counts["scans"] == 150 and loop.counts["scans_dropped"] == 0
+    else:
+        assert loop.counts["scans"] == 64 and loop.counts["scans_dropped"] == 86
