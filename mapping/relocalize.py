@@ -1159,12 +1159,10 @@ def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
     if not len(pts):
         return np.zeros(len(T))
     out = np.empty(len(T))
-    if not soft and field.far >= inlier:    # a plain count: read the packed inlier bits
-        _count_kernel(field.inlier_bits(inlier), int(field.size[0]), float(field.lo[0]),
-                      float(field.lo[1]), float(field.res), np.ascontiguousarray(pts, float),
-                      np.ascontiguousarray(T, float), np.ascontiguousarray(th, float), out)
-        return out
-    _score_kernel(field.dist, float(field.lo[0]), float(field.lo[1]), float(field.res),
+    # a plain count (off the grid no inlier) reads the packed inlier bits
+    bits = (field.inlier_bits(inlier) if not soft and field.far >= inlier
+            else np.zeros((0, 1), np.uint8))
+    _score_kernel(field.dist, bits, float(field.lo[0]), float(field.lo[1]), float(field.res),
                   float(field.far), np.ascontiguousarray(pts, dtype=float),
                   np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(th, dtype=float),
                   float(inlier), bool(soft), out)
@@ -1181,36 +1179,28 @@ def _cell_of(c, s, x, y, tx, ty, lo0, lo1, res):
 
 
 @kernel
-def _count_kernel(bits, nx, lo0, lo1, res, pts, T, th, out):
-    """:func:`_score`'s plain count on the packed inlier bits (:meth:`DistanceField.
-    inlier_bits`): the same cells, the same answer (off the grid: no inlier)."""
-    ny = bits.shape[0]
-    n = pts.shape[0]
-    for h in range(T.shape[0]):
-        c, s = np.cos(th[h]), np.sin(th[h])
-        acc = 0
-        for j in range(n):
-            qx, qy = _cell_of(c, s, pts[j, 0], pts[j, 1], T[h, 0], T[h, 1], lo0, lo1, res)
-            if qx >= 0 and qy >= 0 and qx < nx and qy < ny:
-                ix = int(qx)
-                acc += (bits[int(qy), ix >> 3] >> (ix & 7)) & 1
-        out[h] = acc / n
-
-
-@kernel
-def _score_kernel(dist, lo0, lo1, res, far, pts, T, th, inlier, soft, out):
+def _score_kernel(dist, bits, lo0, lo1, res, far, pts, T, th, inlier, soft, out):
     """:func:`_score` per hypothesis, the points moved, looked up (:meth:`DistanceField.
     lookup_xy`, nearest cell, off-grid far) and counted in one pass: no (hypotheses x points)
-    temporaries, which on a large map's many candidates cost more than the lookups."""
+    temporaries, which on a large map's many candidates cost more than the lookups.  With
+    ``bits`` non-empty (:meth:`DistanceField.inlier_bits` of ``inlier``; a plain count, far
+    beyond the inlier distance), the packed bits are read instead of the distances: the
+    same cells, the same answer, a 32nd of the bytes."""
     ny, nx = dist.shape
     n = pts.shape[0]
+    packed = bits.shape[0] > 0
     for h in range(T.shape[0]):
         c, s = np.cos(th[h]), np.sin(th[h])
         acc = 0.0
         for j in range(n):
             qx, qy = _cell_of(c, s, pts[j, 0], pts[j, 1], T[h, 0], T[h, 1], lo0, lo1, res)
-            d = far
-            if qx >= 0 and qy >= 0 and qx < nx and qy < ny:
+            if not (qx >= 0 and qy >= 0 and qx < nx and qy < ny):
+                d = far
+            elif packed:
+                ix = int(qx)
+                acc += (bits[int(qy), ix >> 3] >> (ix & 7)) & 1
+                continue
+            else:
                 d = dist[int(qy), int(qx)]
             if soft:
                 acc += max(0.0, 1.0 - (d / inlier) ** 2)
