@@ -195,6 +195,7 @@ class DistanceField:
             self.u = d / L[:, None]                       # unit directions
             self.seg_len = L
             self._tab = np.column_stack([self.a, self.u, self.seg_len])
+            self._img = None   # the drawn walls were kept for this grid only
         return self._seg_id
 
     def nearest(self, gx: np.ndarray, gy: np.ndarray, full: bool = False):
