@@ -227,9 +227,11 @@ def run_relocalize(args: argparse.Namespace) -> int:
         print(f"relocalize: --trials {trials} capped to the log's {len(scans)} scans",
               file=sys.stderr)
         trials = len(scans)
+    own = _build_trajectory(Path(args.map).with_name("trajectory.csv"), scans)
     # progress goes to stderr, so --json's stdout stays one object; short runs stay quiet
     res = relocalize_trials(lmap, scans, trials, args.seed, alignment=align,
-                            progress=_progress("relocalize", trials < 50))
+                            progress=_progress("relocalize", trials < 50),
+                            also=None if own is None else {"vs_map_trajectory": own})
     if args.json:
         print(json.dumps(res))
     else:
@@ -238,7 +240,33 @@ def run_relocalize(args: argparse.Namespace) -> int:
         print(f"{res['successes']}/{res['trials']} relocalised within 0.2 m and 3 deg of the "
               f"reference{gauge}: {100 * res['success_rate']:.1f} %, median "
               f"{res['median_ms']:.1f} ms, p95 {res['p95_ms']:.1f} ms")
+        if own is not None:
+            v = res["vs_map_trajectory"]
+            print(f"{v['successes']}/{res['trials']} within 0.2 m and 3 deg of the build's own "
+                  f"trajectory (trajectory.csv): {100 * v['success_rate']:.1f} %")
     return 0
+
+
+def _build_trajectory(path: Path, scans) -> np.ndarray | None:
+    """The poses of ``map build``'s ``trajectory.csv`` beside the map, when it is this log's
+    (a row per scan, the same stamps): relocalisation is then scored against the map's own
+    trajectory too, which the map's ATE against the reference does not blur.  None when
+    the file is absent; when it is unreadable or another log's, None with one line on
+    stderr saying so (it is optional: the trials go on)."""
+    if not path.is_file():
+        return None
+    try:
+        rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        stamps = np.array([s.stamp_ns for s in scans], dtype=float) * 1e-9
+        if rows.shape != (len(scans), 4) or not np.allclose(rows[:, 0], stamps, atol=1e-3):
+            print(f"relocalize: {path} is not this log's trajectory ({len(rows)} rows, "
+                  f"{len(scans)} scans): scored against the reference only", file=sys.stderr)
+            return None
+    except (OSError, ValueError) as exc:
+        print(f"relocalize: {path}: unreadable ({exc}): scored against the reference only",
+              file=sys.stderr)
+        return None
+    return rows[:, 1:]
 
 
 def _alignment(value):

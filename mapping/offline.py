@@ -188,10 +188,14 @@ def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0
                       truth: np.ndarray | None = None,
                       max_trans: float = 0.2, max_rot_deg: float = 3.0,
                       alignment=None,
-                      progress: Callable[[int, int], None] | None = None) -> dict:
+                      progress: Callable[[int, int], None] | None = None,
+                      also: dict | None = None) -> dict:
     """Relocalise ``trials`` scans drawn at random (seeded) with their poses hidden; success
     when within ``max_trans`` and ``max_rot_deg`` of ``truth`` (default: scans' pose_ref).
-    ``alignment`` (x, y, theta) first moves map-frame poses into the truth's frame."""
+    ``alignment`` (x, y, theta) first moves map-frame poses into the truth's frame.
+    ``also``: {name: (n, 3) poses in the map's own frame}, the same answers scored against
+    each as well (success figures under that name): a map built by another run sits off
+    the reference by its ATE, and against the build's own trajectory that is left out."""
     rng = np.random.default_rng(seed)
     n = len(scans)
     if truth is None:
@@ -204,7 +208,7 @@ def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0
     if P.point_refine:
         field.seg_id  # noqa: B018  (built once here, counted with the field, not a trial)
     field_ms = (time.perf_counter() - t0) * 1e3
-    times, cpu, errs_t, errs_r, found, in_top = [], [], [], [], 0, 0
+    times, cpu, answers = [], [], []
     for k, i in enumerate(idx):
         s = scans[int(i)]
         t, tc = time.perf_counter(), time.process_time()
@@ -213,40 +217,55 @@ def relocalize_trials(lmap: LineMap, scans: Sequence, trials: int, seed: int = 0
         times.append(time.perf_counter() - t)
         # CPU time too: on a shared machine the wall clock also counts other processes
         cpu.append(time.process_time() - tc)
-        if res.found:
-            found += 1
-            ranked = np.array([h.pose for h in res.hypotheses[:3]])
-            if alignment is not None:
-                ranked = apply_pose(alignment, ranked)
-            d = ranked - truth[int(i)]
-            et = np.hypot(d[:, 0], d[:, 1])
-            er = np.degrees(np.abs(wrap_angle(d[:, 2])))
-            ok = (et <= max_trans) & (er <= max_rot_deg)
-            in_top += bool(ok.any())
-            if ok[0]:
-                errs_t.append(float(et[0]))
-                errs_r.append(float(er[0]))
+        answers.append(np.array([h.pose for h in res.hypotheses[:3]]).reshape(-1, 3)
+                       if res.found else None)
         if progress is not None:
             progress(k + 1, trials)
     med, p95 = _stats_ms(times)
-    succ = len(errs_t)
     return {
         "trials": int(trials),
-        "successes": succ,
-        "success_rate": round(succ / trials, 4) if trials else 0.0,
-        # the right pose among the first 3 hypotheses: in a symmetric place (a ring of
-        # like corridors) the best one alone cannot know which of them it is
-        "top3_rate": round(in_top / trials, 4) if trials else 0.0,
-        "found": found,
+        **_trial_successes(answers, truth[idx], trials, max_trans, max_rot_deg, alignment),
+        "found": sum(a is not None for a in answers),
         "median_ms": round(med, 2),
         "p95_ms": round(p95, 2),
         "median_cpu_ms": round(_stats_ms(cpu)[0], 2),
         "p95_cpu_ms": round(_stats_ms(cpu)[1], 2),
         "distance_field_ms": round(field_ms, 1),
+        "seed": seed,
+        "aligned_to_reference": alignment is not None,
+        **{name: _trial_successes(answers, np.asarray(poses, float)[idx], trials, max_trans,
+                                  max_rot_deg, None)
+           for name, poses in (also or {}).items()},
+    }
+
+
+def _trial_successes(answers: list, truth: np.ndarray, trials: int, max_trans: float,
+                     max_rot_deg: float, alignment) -> dict:
+    """Success figures of relocalisation answers (each trial's best three poses in the map
+    frame, or None) against the trials' true poses (moved by ``alignment`` first)."""
+    errs_t, errs_r, in_top = [], [], 0
+    for ranked, want in zip(answers, truth, strict=True):
+        if ranked is None:
+            continue
+        if alignment is not None:
+            ranked = apply_pose(alignment, ranked)
+        d = ranked - want
+        et = np.hypot(d[:, 0], d[:, 1])
+        er = np.degrees(np.abs(wrap_angle(d[:, 2])))
+        ok = (et <= max_trans) & (er <= max_rot_deg)
+        in_top += bool(ok.any())
+        if ok[0]:
+            errs_t.append(float(et[0]))
+            errs_r.append(float(er[0]))
+    succ = len(errs_t)
+    return {
+        "successes": succ,
+        "success_rate": round(succ / trials, 4) if trials else 0.0,
+        # the right pose among the first 3 hypotheses: in a symmetric place (a ring of
+        # like corridors) the best one alone cannot know which of them it is
+        "top3_rate": round(in_top / trials, 4) if trials else 0.0,
         "success_error_trans_m": round(float(np.sqrt(np.mean(np.square(errs_t)))), 4)
         if succ else None,
         "success_error_rot_deg": round(float(np.sqrt(np.mean(np.square(errs_r)))), 3)
         if succ else None,
-        "seed": seed,
-        "aligned_to_reference": alignment is not None,
     }

@@ -162,6 +162,23 @@ def test_cli_build_and_relocalize(short_log, tmp_path, capsys):
         assert k in res
     assert res["trials"] == 20 and res["success_rate"] >= 0.6  # measured 0.8
     assert res["success_rate"] <= res["top3_rate"] <= 1.0  # the right pose among the first 3
+    # the build's own trajectory.csv beside the map: the same answers scored against it too
+    own = res["vs_map_trajectory"]
+    assert own["success_rate"] >= 0.6 and own["success_rate"] <= own["top3_rate"], own
+    # another log's trajectory (or a damaged one) is said and left out, the trials go on
+    lines = (out / "trajectory.csv").read_text().splitlines()
+    (out / "trajectory.csv").write_text("\n".join(lines[:50]) + "\n")
+    rc = main(["relocalize", "--map", str(out / "map.json"), "--log", str(short_log),
+               "--trials", "3", "--seed", "1", "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0 and "vs_map_trajectory" not in json.loads(cap.out)
+    assert "is not this log's trajectory (49 rows, 120 scans)" in cap.err
+    (out / "trajectory.csv").write_text("t,x,y,theta\n1,2,oops\n")
+    assert main(["relocalize", "--map", str(out / "map.json"), "--log", str(short_log),
+                 "--trials", "3", "--seed", "1"]) == 0
+    cap = capsys.readouterr()
+    assert "unreadable" in cap.err and "of the reference" in cap.out
+    assert "own trajectory" not in cap.out
 
 
 def test_cli_build_says_what_it_does_after_the_scans(short_log, tmp_path, capsys):
