@@ -19,10 +19,9 @@ def run() -> dict:
            # raw-point ICP at the revisits (scans 50 and more apart, within 1 m and 45 deg)
            "icp_agreement_revisits": revisit_agreement(log, res.poses)}
     # relocalised poses are in the map's frame: scored against the reference after the
-    # build's rigid alignment (the ATE gauge), as `cgamap relocalize` does
-    # the same answers scored against the map's own trajectory (its frame) as well
-    # (``vs_map_trajectory``), which separates relocalisation from the map's residual
-    # error against the reference
+    # build's rigid alignment (the ATE gauge), as `cgamap relocalize` does, and the same
+    # answers against the map's own trajectory (``vs_map_trajectory``), which separates
+    # relocalisation from the map's residual error against the reference
     out["relocalize"] = relocalize_trials(res.map, log, 200, seed=0,
                                           alignment=res.report["alignment_to_reference"],
                                           also={"vs_map_trajectory": res.poses})

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from cgamap.cga import angle_diff
+from scipy.spatial import cKDTree
 
 from .odometry import compose_pose2d, relative
 from .scan_icp import IcpParams, icp, scan_points
@@ -163,8 +164,6 @@ def revisit_pairs(poses: np.ndarray, min_gap: int = 50, radius: float = 1.0,
     within ``radius`` m and ``turn_deg`` of each other by ``poses``: for each later scan the
     nearest such earlier one.  Where a trajectory closed its loops, these are the pairs
     that say whether it closed them right."""
-    from scipy.spatial import cKDTree
-
     poses = np.asarray(poses, float)
     tree = cKDTree(poses[:, :2])
     out = []

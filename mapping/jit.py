@@ -73,6 +73,6 @@ def warm_up() -> float:
     # a big map's coarse-to-fine sweep
     idx = np.zeros((1, 1), np.int64)
     _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,
-                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.int64), 0, 0,
+                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.uint16), 0, 0,
                       np.zeros((3, 1, 1), np.int64))
     return time.perf_counter() - t0

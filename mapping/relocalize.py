@@ -479,15 +479,9 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
             sums_d = np.bincount(which, D, len(cells))[top]
             cand_T.append(np.stack([sums_x, sums_y], -1) / votes[top][:, None])
             cand_R.append(th + sums_d / votes[top])
-    box = None
-    sweep_rots = rots
-    if near is not None and P.sweep_near:
-        # only candidates near the hint are kept: the sweep reads only there, for only the
-        # hint's rotations, so its best cells are the best near the hint
-        box = _near_box(near, P.sweep_grid)
-        sweep_rots = rots[np.abs(_wrap(rots - near[0][2])) < near[2] + tol]
-    if P.sweep_cells and len(sweep_rots):
-        Ts_, Rs_ = _sweep(field, pts, sweep_rots, P, box=box)
+    if P.sweep_cells and len(rots):
+        Ts_, Rs_ = _sweep(field, pts, rots, P, near=near if P.sweep_near else None,
+                          turn_slack=tol)
         cand_T.append(Ts_)
         cand_R.append(Rs_)
     if near is not None:
@@ -554,6 +548,12 @@ def _near_box(near: tuple, cell: float) -> tuple:
     r = near[1] + cell
     c = np.asarray(near[0][:2], float)
     return c - r, c + r
+
+
+def _within_turn(rots: np.ndarray, near: tuple, slack: float) -> np.ndarray:
+    """Which rotation hypotheses lie within a hint's (pose, m, rad) turn, plus ``slack``
+    (a hypothesis stands for the rotations about it)."""
+    return np.abs(_wrap(np.asarray(rots, float) - near[0][2])) < near[2] + slack
 
 
 def _near(T: np.ndarray, th: np.ndarray, near: tuple) -> np.ndarray:
@@ -675,14 +675,11 @@ def _fallback_sweep(field: DistanceField, pts: np.ndarray, P: RelocParams,
     correlative sweep over all rotations at ``fallback_rot_deg`` steps (with ``near``, a
     hint (pose, m, rad): those within its turn, at positions within its distance)."""
     rots = np.arange(0.0, 2 * np.pi, np.deg2rad(P.fallback_rot_deg))
-    box = None
-    if near is not None:
-        rots = rots[np.abs(_wrap(rots - near[0][2])) < near[2] + np.deg2rad(P.fallback_rot_deg)]
-        box = _near_box(near, P.fallback_grid)
     Q = replace(P, sweep_cells=P.fallback_cells, sweep_grid=P.fallback_grid,
                 sweep_points=P.fallback_points)
     # ties of the wide count (the bound) go to the cell whose own pose fits more points
-    T, th = _sweep(field, pts, rots, Q, reach, stats, tight=P.coarse_dist, box=box)
+    T, th = _sweep(field, pts, rots, Q, reach, stats, tight=P.coarse_dist, near=near,
+                   turn_slack=np.deg2rad(P.fallback_rot_deg))
     return T, th, _score(field, pts, T, th, P.coarse_dist)
 
 
@@ -815,7 +812,8 @@ def _top_cells(acc: np.ndarray, k: int, y0: int = 0,
 
 def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocParams,
            reach: float | None = None, stats: dict | None = None,
-           tight: float | None = None, box: tuple | None = None):
+           tight: float | None = None, near: tuple | None = None,
+           turn_slack: float = 0.0):
     """Translation hypotheses that do not need two scan lines on two map lines: for every
     rotation hypothesis, the scan points are correlated with the map's near-wall mask at every
     position of a coarse grid in the free-space band (within ``reach`` of a wall,
@@ -827,7 +825,11 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
     mask for all rotations at once (a point's offset under each rotation picks the phase and
     start of a strided read, :meth:`DistanceField.phase_stack`), so the Python work is
     points x windows, and the memory traffic rotations x points x band positions.  ``stats``
-    (if given) receives the counts: positions, band, rotations, points."""
+    (if given) receives the counts: positions, band, rotations, points.  ``near`` (a hint:
+    pose, m, rad): only its positions, and the rotations within its turn + ``turn_slack``,
+    are swept, so the best cells are the best near it."""
+    if near is not None:
+        rots = np.asarray(rots, float)[_within_turn(rots, near, turn_slack)]
     res = field.res
     step = max(1, int(round(P.sweep_grid / res)))
     thr = P.coarse_dist + 0.71 * step * res
@@ -841,8 +843,8 @@ def _sweep(field: DistanceField, pts: np.ndarray, rots: np.ndarray, P: RelocPara
     # a grid position stands for poses up to half a cell's diagonal away
     band, windows = _band_windows(field, step,
                                   None if reach is None else reach + 0.71 * step * res)
-    if box is not None:
-        windows = _clip_windows(windows, field, step, box)
+    if near is not None:
+        windows = _clip_windows(windows, field, step, _near_box(near, step * res))
     if stats is not None:
         stats.update(positions=int(sum(h * w for _, _, h, w in windows)),
                      band=int(band.sum()), rotations=int(len(rots)), points=int(len(pts)))
@@ -951,7 +953,7 @@ def _coarse_to_fine(field: DistanceField, stack: np.ndarray, thr: float,
         bound *= bw.reshape(hc, f, wc, f).any(axis=(1, 3))
     out = np.zeros((3, R, k), np.int64)
     _branch_and_bound(bound.astype(np.int32), stack, (oy % step) * step + ox % step,
-                      oy // step + y0, ox // step + x0, ok, f, k, _TIE_NOISE.astype(np.int64),
+                      oy // step + y0, ox // step + x0, ok, f, k, _TIE_NOISE,
                       y0, x0, out)
     return out[0].astype(np.int32), out[1], out[2]
 

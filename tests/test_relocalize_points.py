@@ -18,7 +18,6 @@ from cgamap.mapping.relocalize import (
     _crossings,
     _fallback_sweep,
     _icp,
-    _near_box,
     _ranked,
     _reach,
     _score,
@@ -361,7 +360,7 @@ def test_a_hint_keeps_the_sweeps_to_its_neighbourhood():
     hint = (p + np.array([0.6, -0.5, 0.15]), 2.0, 0.52)
     P = RelocParams()
     rots = np.radians(np.arange(0.0, 360.0, 10.0))
-    T, th = _sweep(field, seg.points, rots, P, box=_near_box(hint, P.sweep_grid))
+    T, th = _sweep(field, seg.points, rots, P, near=hint)
     assert len(T) and np.all(np.abs(T - hint[0][:2]) <= 2.0 + P.sweep_grid + 1e-9)
     reach = _reach(seg.points, P, 0.05)
     T, th, _ = _fallback_sweep(field, seg.points, P, reach, near=hint)
