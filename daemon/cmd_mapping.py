@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="relative-pose ground truth (Kümmerle et al. 2009 format, e.g. "
                         "intel.relations): report the error over the relations whose two "
                         "instants are scans of the log")
+    b.add_argument("--params", metavar="FILE",
+                   help="YAML of 2D mapper parameters to change (the fields of "
+                        "cgamap.mapping.slam2d.MapperParams, nested: e.g. 'segments: "
+                        "{range_max: 30.0, min_points: 8}'), or a cgamapd config, whose "
+                        "mapping.params2d is taken; recorded in map.json and report.json")
     b.add_argument("--no-loop-closure", action="store_true",
                    help="global-map matching only, no pose graph")
     b.add_argument("--lenient", action="store_true", help="skip malformed log lines")
@@ -123,14 +129,65 @@ def _relations_report(relations: np.ndarray, stamps: np.ndarray, poses: np.ndarr
     return out
 
 
+def _read_params(path: str) -> dict:
+    """``--params FILE``: the mapper parameters it changes (checked against
+    :class:`~cgamap.mapping.slam2d.MapperParams`, as the daemon's ``mapping.params2d``)."""
+    from cgamap.daemon.config import YamlFileError, read_yaml, with_overrides
+    from cgamap.mapping.slam2d import MapperParams
+
+    try:
+        doc = read_yaml(path, "parameter file")
+    except YamlFileError as exc:
+        raise UsageError(f"--params: {path}: {exc.key + ': ' if exc.key else ''}{exc}"
+                         ) from None
+    where = ""
+    mapping = doc.get("mapping") if isinstance(doc, dict) else None
+    if isinstance(mapping, dict):  # a cgamapd config: its 2D mapper's parameters
+        doc, where = mapping.get("params2d"), "mapping.params2d."
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise UsageError(f"--params: {path}: {where or 'top level: '}expected a mapping of "
+                         f"mapper parameters, got {type(doc).__name__}")
+    if "mount" in doc:
+        raise UsageError(f"--params: {path}: {where}mount: the laser's mount comes from the "
+                         "log (its laser and odometry poses), not from here")
+    try:
+        with_overrides(MapperParams(), doc, where)
+    except ValueError as exc:
+        raise UsageError(f"--params: {path}: {exc}") from None
+    return doc
+
+
+def _segment_params(lmap):
+    """The segment extraction a map was built with (``map build --params``, recorded in its
+    metadata): relocalising in it must cut scans into segments the same way."""
+    from cgamap.daemon.config import with_overrides
+    from cgamap.mapping.segments import SegmentParams
+
+    got = lmap.metadata.get("params2d", {})
+    got = got.get("segments") if isinstance(got, dict) else got
+    if got is None:
+        return None
+    if not isinstance(got, dict):
+        raise UsageError("--map: metadata.params2d.segments: expected a mapping")
+    try:
+        return with_overrides(SegmentParams(), got, "metadata.params2d.segments.",
+                              "segment parameter")
+    except ValueError as exc:
+        raise UsageError(f"--map: {exc}") from None
+
+
 def run_build(args: argparse.Namespace) -> int:
+    from cgamap.daemon.config import with_overrides
     from cgamap.mapping.fileio import write_text_atomic
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
     from cgamap.mapping.offline import build_map, log_odometry
     from cgamap.mapping.render import export_occupancy, render_png
-    from cgamap.mapping.slam2d import LoopParams, MapperParams
+    from cgamap.mapping.slam2d import MapperParams
 
+    overrides = _read_params(args.params) if args.params else {}
     scans, st = _read_log(args.log, args.lenient, args.quiet)
     relations = _read_relations(args.relations) if args.relations else None
     out = Path(args.out)
@@ -142,12 +199,16 @@ def run_build(args: argparse.Namespace) -> int:
         odo, mount = log_odometry(scans, args.odom_noise, args.seed)
     except ValueError as exc:
         raise UsageError(f"--log: {exc}; cannot replay without odometry") from None
-    params = MapperParams(loop=LoopParams(enabled=not args.no_loop_closure))
+    params = with_overrides(MapperParams(), overrides)
+    if args.no_loop_closure:
+        params = replace(params, loop=replace(params.loop, enabled=False))
     res = build_map(scans, odo, params, _progress("map build", args.quiet),
                     None if args.quiet else lambda line: print(f"map build: {line}",
                                                                file=sys.stderr, flush=True))
     meta = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
             "scans": len(scans), "frame": "map = the log's first pose"}
+    if overrides:
+        meta["params2d"] = overrides
     if "alignment_to_reference" in res.report:
         meta["alignment_to_reference"] = res.report["alignment_to_reference"]
     _keep_previous(out / "map.json", args.quiet)
@@ -158,7 +219,8 @@ def run_build(args: argparse.Namespace) -> int:
                    for t, (x, y, th) in zip(res.stamps, res.poses, strict=True))
     write_text_atomic(out / "trajectory.csv", "t,x,y,theta\n" + rows)
     report = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
-              "skipped_lines": st.skipped, **res.report}
+              "skipped_lines": st.skipped, **({"params2d": overrides} if overrides else {}),
+              **res.report}
     if st.saturated_range is not None:
         report["no_return_reading_m"] = st.saturated_range
         report["no_return_readings"] = st.saturated_beams
@@ -218,6 +280,7 @@ def run_relocalize(args: argparse.Namespace) -> int:
         raise UsageError(f"--map: {exc}") from None
     if len(lmap) < 2:
         raise UsageError(f"--map: {args.map}: the map has fewer than 2 segments")
+    segment_params = _segment_params(lmap)
     scans, _ = _read_log(args.log, args.lenient)
     if any(s.pose_ref is None for s in scans):
         raise UsageError("--log: scans carry no reference poses to score against")
@@ -230,6 +293,7 @@ def run_relocalize(args: argparse.Namespace) -> int:
     own = _build_trajectory(Path(args.map).with_name("trajectory.csv"), scans)
     # progress goes to stderr, so --json's stdout stays one object; short runs stay quiet
     res = relocalize_trials(lmap, scans, trials, args.seed, alignment=align,
+                            segment_params=segment_params,
                             progress=_progress("relocalize", trials < 50),
                             also=None if own is None else {"vs_map_trajectory": own})
     if args.json:

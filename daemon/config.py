@@ -482,25 +482,44 @@ def validate(raw: Any, base: Path | None = None) -> dict:
     return cfg
 
 
-def load(path: str | os.PathLike) -> dict:
-    """Read and validate a YAML config file (ConfigError for every kind of problem)."""
+class YamlFileError(ValueError):
+    """A YAML file that cannot be read: ``key`` the entry at fault ("" for the whole file),
+    the message says what is wrong (with the line where YAML knows it)."""
+
+    def __init__(self, key: str, message: str):
+        super().__init__(message)
+        self.key = key
+
+
+def read_yaml(path: str | os.PathLike, what: str = "config file") -> Any:
+    """The document of a YAML file (``what`` it should be, for the messages); a key given
+    twice in one mapping is refused.  YamlFileError for every kind of problem."""
     p = Path(path)
     if p.is_dir():
-        raise ConfigError("", f"cannot read {str(p)!r}: is a directory, not a config file")
+        raise YamlFileError("", f"cannot read {str(p)!r}: is a directory, not a {what}")
     try:
         text = p.read_text()
     except OSError as exc:
-        raise ConfigError("", f"cannot read {str(p)!r}: {exc.strerror or exc}") from None
+        raise YamlFileError("", f"cannot read {str(p)!r}: {exc.strerror or exc}") from None
     except UnicodeDecodeError as exc:
-        raise ConfigError("", f"cannot read {str(p)!r}: not a text (YAML) file (undecodable "
-                          f"byte at offset {exc.start})") from None
+        raise YamlFileError("", f"cannot read {str(p)!r}: not a text (YAML) file (undecodable "
+                            f"byte at offset {exc.start})") from None
     try:
-        raw = yaml.load(text, Loader=_UniqueKeyLoader)
+        return yaml.load(text, Loader=_UniqueKeyLoader)
     except DuplicateKeyError as exc:
-        raise ConfigError(exc.key_path, f"duplicate key at line {exc.line} (the first one "
-                          "would be ignored)") from None
+        raise YamlFileError(exc.key_path, f"duplicate key at line {exc.line} (the first one "
+                            "would be ignored)") from None
     except yaml.YAMLError as exc:
-        raise ConfigError("", yaml_error_text(exc)) from None
+        raise YamlFileError("", yaml_error_text(exc)) from None
+
+
+def load(path: str | os.PathLike) -> dict:
+    """Read and validate a YAML config file (ConfigError for every kind of problem)."""
+    p = Path(path)
+    try:
+        raw = read_yaml(p)
+    except YamlFileError as exc:
+        raise ConfigError(exc.key, str(exc)) from None
     if raw is not None and not isinstance(raw, dict):
         raise ConfigError("", f"top level must be a mapping, got {_type_name(raw)}")
     cfg = validate(raw, p.resolve().parent)
