@@ -202,3 +202,44 @@ def test_online_optimisation_leaves_the_finished_nodes_where_the_pass_put_them()
     assert m.loops > loops0 and m.optimizations > opt0, "no online closure after the pass"
     np.testing.assert_array_equal(m.poses[:half], placed)
     assert ate(m.poses, truth)["ate_trans_m"] < 0.1
+
+
+def test_pair_turns_reads_the_turn_from_the_walls_directions():
+    from cgamap.mapping.slam2d import pair_turns
+
+    dst = _segs(ROOM, np.array([2.0, 2.5, 0.3]), seed=1)
+    for turn_deg in (-7.0, -2.0, 4.5, 8.0):
+        # the same place seen from a laser turned ``turn`` more: its walls, turned by
+        # ``turn``, line up with the destination's
+        src = _segs(ROOM, np.array([2.0, 2.5, 0.3 + np.deg2rad(turn_deg)]), seed=2)
+        A, B = _pad([(src.a, src.b), (src.b, src.a)], 0.0)     # b-a: lines are undirected
+        Da, Db = _pad([(dst.a, dst.b), (dst.a[:2], dst.b[:2])], 1e6)
+        got = np.degrees(pair_turns(A, B, Da, Db, np.zeros(2), np.deg2rad(10.0)))
+        assert np.allclose(got, turn_deg, atol=0.3), (turn_deg, got)
+    # no two directions within reach: no turn
+    A, B = _pad([(np.zeros((1, 2)), np.array([[1.0, 0.0]]))], 0.0)
+    Da, Db = _pad([(np.zeros((1, 2)), np.array([[0.0, 1.0]]))], 1e6)
+    assert pair_turns(A, B, Da, Db, np.zeros(1), np.deg2rad(10.0))[0] == 0.0
+
+
+def test_the_pass_takes_a_pair_back_from_a_turn_beyond_the_corrections_reach():
+    from dataclasses import replace
+
+    from cgamap.mapping.slam2d import neighbour_matches
+
+    hall = world([(0, 0, 30, 0), (30, 0, 30, 6), (30, 6, 0, 6), (0, 6, 0, 0),
+                  (12, 0, 12, 1.2), (19, 6, 19, 4.5), (24, 0, 24, 0.8)])
+    truth = np.array([[4.0, 3.0, 0.05], [6.5, 3.3, 0.15]])
+    scans = []
+    for k, p in enumerate(truth):
+        s = _segs(hall, p, seed=k)
+        scans.append((s.a, s.b))
+    X = truth.copy()
+    X[1, 2] += np.deg2rad(7.0)        # the mapper took the second scan 7 deg wrong
+    want = relative(truth[0], truth[1])
+    NP = NeighbourParams()
+    for reach, ok in ((NP.turn_reach, True), (0.0, False)):
+        E = neighbour_matches(X, scans, replace(NP, turn_reach=reach), np.array([[0, 1]]))
+        right = len(E) == 1 and abs(np.degrees(E.z[0, 2] - want[2])) < 0.5 and \
+            np.hypot(*(E.z[0, :2] - want[:2])) < 0.05
+        assert right == ok, (reach, E.z if len(E) else None, want)
