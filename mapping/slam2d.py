@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_batch, correct_pose
 from .free_space import update_streaks
+from .jit import kernel
 from .line_adjust import AdjustParams, Contributions, adjust, associate
 from .linemap import LineMap, MapParams, age_out, dedupe, integrate, refresh
 from .matching import LineIndex
@@ -1165,34 +1166,64 @@ def pair_turns(src_a: np.ndarray, src_b: np.ndarray, dst_a: np.ndarray, dst_b: n
     """Per pair, the turn (rad) within ``reach`` that lays the source segments' directions
     (turned by ``theta``) onto the destination's (seed eq. 10 in the Hough domain): the peak
     of the histogram of their direction differences (lines are undirected), each two
-    segments weighted by the shorter one's length, refined to the weighted mean of the peak
-    bin and its two neighbours.  0 where no two directions come within ``reach``.
-    Segments (P, k, 2) and (P, m, 2), padded (zero-length source segments weigh nothing;
-    destination padding lies beyond 1e3 m)."""
-    ls = np.hypot(*(src_b - src_a).transpose(2, 0, 1))
-    ld = np.hypot(*(dst_b - dst_a).transpose(2, 0, 1))
-    ld = np.where(np.abs(dst_a[..., 0]) > 1e3, 0.0, ld)  # padding
-    phs = np.arctan2(*(src_b - src_a).transpose(2, 0, 1)[::-1]) + theta[:, None]
-    phd = np.arctan2(*(dst_b - dst_a).transpose(2, 0, 1)[::-1])
-    d = phd[:, None, :] - phs[:, :, None]
-    d = (d + np.pi / 2) % np.pi - np.pi / 2                 # undirected lines
-    w = np.minimum(ls[:, :, None], ld[:, None, :])
-    w = np.where(np.abs(d) <= reach, w, 0.0)
-    nb = 2 * int(np.ceil(reach / bin_rad)) + 1
-    k = np.clip(np.round(d / bin_rad).astype(np.int64) + nb // 2, 0, nb - 1)
-    P = len(theta)
-    cell = (np.arange(P)[:, None, None] * nb + k).ravel()
-    hist = np.bincount(cell, w.ravel(), P * nb).reshape(P, nb)
-    wsum = np.bincount(cell, (w * d).ravel(), P * nb).reshape(P, nb)
-    sm = hist.copy()
-    sm[:, 1:] += hist[:, :-1]
-    sm[:, :-1] += hist[:, 1:]
-    peak = np.argmax(sm, axis=1)
-    lo, hi = np.maximum(peak - 1, 0), np.minimum(peak + 1, nb - 1)
-    idx = np.arange(nb)[None, :]
-    win = (idx >= lo[:, None]) & (idx <= hi[:, None])
-    tot = (hist * win).sum(1)
-    return np.where(tot > 0, (wsum * win).sum(1) / np.maximum(tot, 1e-12), 0.0)
+    segments weighted by the shorter one's length, summed over three neighbouring bins,
+    refined to the weighted mean of those bins.  0 where no two directions come within
+    ``reach``.  Segments (P, k, 2) and (P, m, 2), padded (zero-length segments weigh
+    nothing; destination padding lies beyond 1e3 m)."""
+    f = np.ascontiguousarray
+    return _pair_turns(f(src_a, dtype=float), f(src_b, dtype=float), f(dst_a, dtype=float),
+                       f(dst_b, dtype=float), f(theta, dtype=float), float(reach),
+                       float(bin_rad))
+
+
+@kernel
+def _pair_turns(sa, sb, da, db, theta, reach, bin_rad):
+    P, k, m = sa.shape[0], sa.shape[1], da.shape[1]
+    half = int(np.ceil(reach / bin_rad))
+    nb = 2 * half + 1
+    out = np.zeros(P)
+    hist = np.zeros(nb)
+    wsum = np.zeros(nb)
+    ang_d = np.zeros(m)
+    len_d = np.zeros(m)
+    for p in range(P):
+        for j in range(m):
+            dx, dy = db[p, j, 0] - da[p, j, 0], db[p, j, 1] - da[p, j, 1]
+            ang_d[j] = np.arctan2(dy, dx)
+            len_d[j] = 0.0 if abs(da[p, j, 0]) > 1e3 else np.sqrt(dx * dx + dy * dy)
+        hist[:] = 0.0
+        wsum[:] = 0.0
+        for i in range(k):
+            dx, dy = sb[p, i, 0] - sa[p, i, 0], sb[p, i, 1] - sa[p, i, 1]
+            ls = np.sqrt(dx * dx + dy * dy)
+            if ls <= 0.0:
+                continue
+            a = np.arctan2(dy, dx) + theta[p]
+            for j in range(m):
+                w = min(ls, len_d[j])
+                if w <= 0.0:
+                    continue
+                d = (ang_d[j] - a + 0.5 * np.pi) % np.pi - 0.5 * np.pi  # undirected
+                if abs(d) > reach:
+                    continue
+                q = min(max(int(np.floor(d / bin_rad + 0.5)) + half, 0), nb - 1)
+                hist[q] += w
+                wsum[q] += w * d
+        best, at = 0.0, -1
+        for q in range(nb):
+            v = hist[q] + (hist[q - 1] if q > 0 else 0.0) + (hist[q + 1] if q < nb - 1 else 0.0)
+            if v > best:
+                best, at = v, q
+        if at < 0:
+            continue
+        lo, hi = max(at - 1, 0), min(at + 1, nb - 1)
+        tot = 0.0
+        acc = 0.0
+        for q in range(lo, hi + 1):
+            tot += hist[q]
+            acc += wsum[q]
+        out[p] = acc / tot if tot > 0.0 else 0.0
+    return out
 
 
 def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int,
