@@ -480,8 +480,10 @@ def test_record_never_overwrites_and_survives_a_quiet_daemon(tmp_path, capsys):
     t = threading.Thread(target=serve, daemon=True)
     t.start()
     try:
+        # the fake daemon hangs up 2.6 s in: the duration only bounds a run that goes wrong
+        # (2.5 s left 0.9 s for the client to connect, too little on a loaded machine)
         code, out, err = run_cli(["record", tmp_path / "new.mcap", "--socket", path,
-                                  "--duration", "2.5"], capsys)
+                                  "--duration", "6"], capsys)
     finally:
         t.join(10)
         srv.close()
