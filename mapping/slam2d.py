@@ -214,7 +214,7 @@ class NeighbourParams:
     # wrong (a sparse log's turn, a slip recovery's choice) was kept by the pass, or turned
     # into an edge as wrong.  Intel, high noise: every 2nd scan (a scan a metre), seeds
     # 0-7, mean ATE 0.103 -> 0.088 m (every seed better); every 3rd 0.56 -> 0.46 m; the
-    # whole log, seeds 0-15, 0.0582 -> 0.0582 m (1.5 deg: 0.0574 m over seeds 0-7, not
+    # whole log, seeds 0-15, 0.0582 -> 0.0583 m (1.5 deg: 0.0574 m over seeds 0-7, not
     # 0.0567); Killian, high, seed 0: 0.58 -> 0.54 m
     turn_reach: float = np.deg2rad(10.0)
     turn_min: float = np.deg2rad(3.0)
