@@ -209,7 +209,8 @@ class NeighbourParams:
     # a pair whose walls' directions, at the current estimate, disagree by more than
     # ``turn_min`` (rad; looked for within ``turn_reach``, 0: off) is solved again from the
     # turn that lines them up (:func:`pair_turns`: seed eq. 10 in the Hough domain), and the
-    # answer that matches clearly more of the scan (or as much, closer) kept.  The
+    # answer that matches clearly more of the scan (or as much with a smaller residual)
+    # kept.  The
     # correction's own reach in rotation is a few degrees: a step the mapper took 4-8 deg
     # wrong (a sparse log's turn, a slip recovery's choice) was kept by the pass, or turned
     # into an edge as wrong.  Intel, high noise: every 2nd scan (a scan a metre), seeds
