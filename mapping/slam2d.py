@@ -210,13 +210,12 @@ class NeighbourParams:
     # ``turn_min`` (rad; looked for within ``turn_reach``, 0: off) is solved again from the
     # turn that lines them up (:func:`pair_turns`: seed eq. 10 in the Hough domain), and the
     # answer that matches clearly more of the scan (or as much with a smaller residual)
-    # kept.  The
-    # correction's own reach in rotation is a few degrees: a step the mapper took 4-8 deg
-    # wrong (a sparse log's turn, a slip recovery's choice) was kept by the pass, or turned
-    # into an edge as wrong.  Intel, high noise: every 2nd scan (a scan a metre), seeds
-    # 0-7, mean ATE 0.103 -> 0.088 m (every seed better); every 3rd 0.56 -> 0.46 m; the
-    # whole log, seeds 0-15, 0.0582 -> 0.0583 m (1.5 deg: 0.0574 m over seeds 0-7, not
-    # 0.0567); Killian, high, seed 0: 0.58 -> 0.54 m
+    # kept.  The correction's own reach in rotation is a few degrees: a step the mapper
+    # took 4-8 deg wrong (a sparse log's turn, a slip recovery's choice) was kept by the
+    # pass, or turned into an edge as wrong.  Intel, high noise: every 2nd scan (a scan a
+    # metre), seeds 0-7, mean ATE 0.103 -> 0.088 m (every seed better); every 3rd 0.56 ->
+    # 0.46 m; the whole log, seeds 0-15, 0.0582 -> 0.0583 m (1.5 deg: 0.0574 m over seeds
+    # 0-7, not 0.0567); Killian, high, seed 0: 0.58 -> 0.54 m
     turn_reach: float = np.deg2rad(10.0)
     turn_min: float = np.deg2rad(3.0)
 
