@@ -129,11 +129,10 @@ def _relations_report(relations: np.ndarray, stamps: np.ndarray, poses: np.ndarr
     return out
 
 
-def _read_params(path: str) -> dict:
-    """``--params FILE``: the mapper parameters it changes (checked against
-    :class:`~cgamap.mapping.slam2d.MapperParams`, as the daemon's ``mapping.params2d``)."""
-    from cgamap.daemon.config import YamlFileError, read_yaml, with_overrides
-    from cgamap.mapping.slam2d import MapperParams
+def _read_params(path: str):
+    """``--params FILE``: (the mapper's parameters, the overrides the file gives), checked as
+    the daemon checks its ``mapping.params2d`` (:func:`~cgamap.daemon.config.mapper_params`)."""
+    from cgamap.daemon.config import YamlFileError, mapper_params, read_yaml
 
     try:
         doc = read_yaml(path, "parameter file")
@@ -149,14 +148,11 @@ def _read_params(path: str) -> dict:
     if not isinstance(doc, dict):
         raise UsageError(f"--params: {path}: {where or 'top level: '}expected a mapping of "
                          f"mapper parameters, got {type(doc).__name__}")
-    if "mount" in doc:
-        raise UsageError(f"--params: {path}: {where}mount: the laser's mount comes from the "
-                         "log (its laser and odometry poses), not from here")
     try:
-        with_overrides(MapperParams(), doc, where)
+        return mapper_params(doc, where, mount_note="the laser's mount comes from the log "
+                             "(its laser and odometry poses), not from here"), doc
     except ValueError as exc:
         raise UsageError(f"--params: {path}: {exc}") from None
-    return doc
 
 
 def _segment_params(lmap):
@@ -165,8 +161,10 @@ def _segment_params(lmap):
     from cgamap.daemon.config import with_overrides
     from cgamap.mapping.segments import SegmentParams
 
-    got = lmap.metadata.get("params2d", {})
-    got = got.get("segments") if isinstance(got, dict) else got
+    rec = lmap.metadata.get("params2d", {})
+    if not isinstance(rec, dict):
+        raise UsageError("--map: metadata.params2d: expected a mapping")
+    got = rec.get("segments")
     if got is None:
         return None
     if not isinstance(got, dict):
@@ -179,7 +177,6 @@ def _segment_params(lmap):
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from cgamap.daemon.config import with_overrides
     from cgamap.mapping.fileio import write_text_atomic
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
@@ -187,7 +184,7 @@ def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.render import export_occupancy, render_png
     from cgamap.mapping.slam2d import MapperParams
 
-    overrides = _read_params(args.params) if args.params else {}
+    params, overrides = _read_params(args.params) if args.params else (MapperParams(), {})
     scans, st = _read_log(args.log, args.lenient, args.quiet)
     relations = _read_relations(args.relations) if args.relations else None
     out = Path(args.out)
@@ -199,7 +196,6 @@ def run_build(args: argparse.Namespace) -> int:
         odo, mount = log_odometry(scans, args.odom_noise, args.seed)
     except ValueError as exc:
         raise UsageError(f"--log: {exc}; cannot replay without odometry") from None
-    params = with_overrides(MapperParams(), overrides)
     if args.no_loop_closure:
         params = replace(params, loop=replace(params.loop, enabled=False))
     res = build_map(scans, odo, params, _progress("map build", args.quiet),

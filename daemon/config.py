@@ -126,15 +126,22 @@ def with_overrides(default, values: dict, where: str = "", what: str = "2D mappe
     return replace(default, **changes)
 
 
-def _check_params2d(v: dict) -> str | None:
-    """``mapping.slam2d.MapperParams`` overrides (:func:`with_overrides`; the laser mount
-    comes from the device's mount)."""
+def mapper_params(values: dict, where: str = "", base=None,
+                  mount_note: str = "set by the laser device's mount, not here"):
+    """``mapping.slam2d.MapperParams`` (``base``, default the defaults) with the ``params2d``
+    overrides ``values`` (:func:`with_overrides`, dotted names after ``where``).  The laser
+    mount is never one of them (``mount_note`` says where it comes from).  ValueError naming
+    the field at fault."""
     from cgamap.mapping.slam2d import MapperParams
 
-    if "mount" in v:
-        return "mount: set by the laser device's mount, not here"
+    if "mount" in values:
+        raise ValueError(f"{where}mount: {mount_note}")
+    return with_overrides(MapperParams() if base is None else base, values, where)
+
+
+def _check_params2d(v: dict) -> str | None:
     try:
-        with_overrides(MapperParams(), v)
+        mapper_params(v)
     except ValueError as exc:
         return str(exc)
     return None

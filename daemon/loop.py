@@ -27,7 +27,7 @@ from cgamap.mapping import planemap
 from cgamap.mapping.odometry import WheelGeometry, compose_pose2d, ticks_to_increment, wrap_angle
 from cgamap.mapping.posegraph import relative
 
-from .config import params3d, with_overrides
+from .config import mapper_params, params3d
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class Mapper2D:
         # compacted away with their nodes)
         base = MapperParams(mount=mount, neighbours=NeighbourParams(enabled=False),
                             max_nodes=20_000)
-        P = with_overrides(base, params)
+        P = mapper_params(params, base=base)
         self._make = lambda pose: Mapper(P, initial_pose=pose)
         self.m = self._make((0.0, 0.0, 0.0))
         self.m.keep_scans = True

@@ -1164,12 +1164,13 @@ def pair_turns(src_a: np.ndarray, src_b: np.ndarray, dst_a: np.ndarray, dst_b: n
                theta: np.ndarray, reach: float, bin_rad: float = np.deg2rad(0.5)
                ) -> np.ndarray:
     """Per pair, the turn (rad) within ``reach`` that lays the source segments' directions
-    (turned by ``theta``) onto the destination's (seed eq. 10 in the Hough domain): the peak
-    of the histogram of their direction differences (lines are undirected), each two
-    segments weighted by the shorter one's length, summed over three neighbouring bins,
-    refined to the weighted mean of those bins.  0 where no two directions come within
-    ``reach``.  Segments (P, k, 2) and (P, m, 2), padded (zero-length segments weigh
-    nothing; destination padding lies beyond 1e3 m)."""
+    (turned by ``theta``) onto the destination's: eq. 10's theta_err read in the Hough
+    domain, as :func:`.relocalize.rotation_peaks` reads eq. 9 for one scan against a map
+    (the same length-weighted histogram of undirected direction differences), here for a
+    batch of pairs and only its one peak within ``reach`` (summed over three neighbouring
+    bins, refined to the weighted mean of those bins).  Compiled: the finishing pass asks
+    it for every scan pair.  0 where no two directions come within ``reach``.  Segments
+    (P, k, 2) and (P, m, 2), padded with zero-length segments (they weigh nothing)."""
     f = np.ascontiguousarray
     return _pair_turns(f(src_a, dtype=float), f(src_b, dtype=float), f(dst_a, dtype=float),
                        f(dst_b, dtype=float), f(theta, dtype=float), float(reach),
@@ -1190,7 +1191,7 @@ def _pair_turns(sa, sb, da, db, theta, reach, bin_rad):
         for j in range(m):
             dx, dy = db[p, j, 0] - da[p, j, 0], db[p, j, 1] - da[p, j, 1]
             ang_d[j] = np.arctan2(dy, dx)
-            len_d[j] = 0.0 if abs(da[p, j, 0]) > 1e3 else np.sqrt(dx * dx + dy * dy)
+            len_d[j] = np.sqrt(dx * dx + dy * dy)
         hist[:] = 0.0
         wsum[:] = 0.0
         for i in range(k):
