@@ -67,11 +67,19 @@ def _progress(label: str, quiet: bool):
     if quiet:
         return None
 
-    def show(k: int, n: int) -> None:
-        if k == n or k % 25 == 0:
-            print(f"\r{label}: {k}/{n}", end="\n" if k == n else "", file=sys.stderr,
-                  flush=True)
-    return show
+    if sys.stderr.isatty():
+        def show(k: int, n: int) -> None:
+            if k == n or k % 25 == 0:
+                print(f"\r{label}: {k}/{n}", end="\n" if k == n else "", file=sys.stderr,
+                      flush=True)
+        return show
+
+    # a log file or a pipe: a line per tenth, not one line run together by carriage returns
+    def lines(k: int, n: int) -> None:
+        step = max(n // 10, 1)
+        if k == n or k % step == 0:
+            print(f"{label}: {k}/{n}", file=sys.stderr, flush=True)
+    return lines
 
 
 def _read_log(path: str, lenient: bool, quiet: bool = False):

@@ -108,3 +108,13 @@ def test_relocalize_refuses_a_map_with_bad_recorded_params(tmp_path, capsys):
     assert main(["relocalize", "--map", str(m), "--log", str(log)]) == 2
     err = capsys.readouterr().err
     assert "--map: unknown segment parameter 'metadata.params2d.segments.min_pionts'" in err
+
+
+def test_progress_to_a_log_file_is_one_line_per_tenth(short_log, tmp_path, capsys):
+    # capsys's stderr is no terminal: lines, not carriage returns run together
+    assert main(["map", "build", "--log", str(short_log), "--out", str(tmp_path / "m")]) == 0
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    counts = [ln.split(": ")[1] for ln in err.splitlines() if ln.startswith("map build: ")
+              and ln.split(": ")[1].split("/")[0].isdigit()]
+    assert counts[-1] == "120/120" and len(counts) == 10
