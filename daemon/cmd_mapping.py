@@ -215,6 +215,8 @@ def run_build(args: argparse.Namespace) -> int:
         meta["params2d"] = overrides
     if "alignment_to_reference" in res.report:
         meta["alignment_to_reference"] = res.report["alignment_to_reference"]
+    if (res.report.get("reference_check") or {}).get("odometry_like"):
+        meta["reference_odometry_like"] = True   # relocalize says so beside its rate
     _keep_previous(out / "map.json", args.quiet)
     save_map(res.map, out / "map.json", meta)
     render_png(res.map, out / "map.png", res.poses)
@@ -241,6 +243,14 @@ def run_build(args: argparse.Namespace) -> int:
         if sq is not None:  # a log without reference poses still gets this one figure
             line += f" wall_squareness_deg={sq}"
         print(line, file=sys.stderr)
+        chk = report.get("reference_check") or {}
+        if chk.get("odometry_like"):
+            on, rms = chk["on_axes"], chk["rms_deg"]
+            print(f"map build: warning: the log's poses look like raw odometry, not a corrected "
+                  f"trajectory (walls {rms['reference']}° RMS off the building's axes along "
+                  f"them, {rms['estimate']}° along the estimate; {on['reference']:.0%} of the "
+                  f"wall length near the axes against {on['estimate']:.0%}): the ATE is against "
+                  "them, not against the truth", file=sys.stderr)
     print(out / "map.json")
     return 0
 
@@ -308,6 +318,9 @@ def run_relocalize(args: argparse.Namespace) -> int:
         print(f"{res['successes']}/{res['trials']} relocalised within 0.2 m and 3 deg of the "
               f"reference{gauge}: {100 * res['success_rate']:.1f} %, median "
               f"{res['median_ms']:.1f} ms, p95 {res['p95_ms']:.1f} ms")
+        if lmap.metadata.get("reference_odometry_like"):
+            print("relocalize: the build found the log's poses look like raw odometry: the "
+                  "rate against them says little about the map", file=sys.stderr)
         if own is not None:
             v = res["vs_map_trajectory"]
             print(f"{v['successes']}/{res['trials']} within 0.2 m and 3 deg of the build's own "

@@ -18,6 +18,7 @@ from .evaluation import (
     apply_pose,
     ate,
     icp_agreement,
+    reference_check,
     revisit_pairs,
     rpe,
     wall_squareness,
@@ -152,6 +153,9 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         if R is not None:
             tracks["reference"] = R
         report["squareness"] = squareness(scans, tracks, mapper.params.segments)
+        check = reference_check(report["squareness"])
+        if check is not None:
+            report["reference_check"] = check
     stamps = np.array([s.stamp_ns for s in scans], dtype=float) * 1e-9
     return BuildResult(mapper.map, poses, stamps, report, mapper.node_scan.array().copy())
 
