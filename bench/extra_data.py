@@ -10,6 +10,14 @@ repository: ``python -m bench.extra_data`` (``make data-extra``).
   poses, like the Intel log's corrected ones; ``map build`` reads the ROBOTLASER1 lines and
   passes the graph's lines by.
 
+- ``laser/csail.corrected.log``: the MIT CSAIL building (a classic of the Radish repository,
+  corrected by a SLAM run, as the PLE and SLAM benchmarks distribute it): 406 FLASER scans of
+  361 beams (0.5 deg, 81.91 m where nothing returned) a metre apart, 380 m of travel; its
+  timestamps carry six digits (all scans at 1.13486e+09 s or the next).  No package on PyPI
+  ships it, so it is not fetched: put the plain-text log (908 137 bytes, SHA-256 pinned below;
+  e.g. ``DataSet/RawData/csail.corrected.log`` of github.com/xiaofeng419/SLAM-2D-LIDAR-SCAN)
+  at that path.  ``bench_mapping_csail`` skips with this instruction while it is absent.
+
 Where: ``$CGAMAP_EXTRA_DATA``, else ``~/.cache/cgamap/data``.  pip fetches the wheel (45 MB,
 pinned by version and checked by SHA-256); nothing else is kept.
 """
@@ -31,6 +39,11 @@ _WHEEL = "rtb-data==2.0.0"
 _WHEEL_SHA256 = "ecbcad669eb4d91ef971311640683eab19e2310f2a2be5c04fa5d32c6f0efce6"
 _MEMBER = "rtbdata/data/killian.g2o.zip"
 _SHA256 = "e0e3c240ea5899e297d9013178088e19c46ff0227c70593d238482b0ea09c250"
+CSAIL = "laser/csail.corrected.log"
+CSAIL_SHA256 = "9cccecbce71fa38832e403643dd731cc05e36561adb4e7e9d34c1ed769977de3"
+_HOW = {KILLIAN: "make data-extra fetches it",
+        CSAIL: "not on PyPI: copy the plain-text csail.corrected.log there, see "
+               "bench/extra_data.py"}
 
 
 def extra_dir() -> Path:
@@ -42,7 +55,13 @@ def missing(rel: str = KILLIAN) -> dict | None:
     """A benchmark's result when the file is absent (None when it is there)."""
     if (extra_dir() / rel).exists():
         return None
-    return {"skipped": f"{rel} not found under {extra_dir()} (make data-extra fetches it)"}
+    return {"skipped": f"{rel} not found under {extra_dir()} ({_HOW.get(rel, '')})"}
+
+
+def checked(rel: str, sha256: str) -> dict:
+    """Whether the file at ``rel`` is the pinned one (a copy by hand may differ)."""
+    got = _sha256((extra_dir() / rel).read_bytes())
+    return {"sha256": got, "pinned": got == sha256}
 
 
 def _sha256(data: bytes) -> str:
