@@ -115,6 +115,9 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         # correction; tried: relocalised in a submap, then refused by the reason counted)
         "closure_attempts": dict(mapper.loop_stats),
         "sweep_closures": mapper.sweep_edges,
+        # the finishing pass's neighbour rounds: how far each moved the map (RMS, after a
+        # rigid alignment); it stops once one moves it less than NeighbourParams.converged
+        "neighbour_round_moves_m": mapper.round_moves,
         "slips_recovered": mapper.slips,
         # map segments later scans saw through (people, carts, doors that moved on)
         "segments_cleared": mapper.cleared,

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_batch, correct_pose
+from .evaluation import ate
 from .free_space import update_streaks
 from .jit import kernel
 from .line_adjust import AdjustParams, Contributions, adjust, associate
@@ -177,6 +178,17 @@ class NeighbourParams:
     # pairs are weak along the corridor, went from 0.117 to 0.134 m
     closure_weight: float = 0.01
     rounds: int = 2               # match again from the re-optimised poses (2: measured best)
+    # ... and on, up to ``max_rounds``, while a round still moved the map by ``converged`` (m,
+    # RMS over the nodes after a rigid alignment, which no anchor choice changes) or more
+    # (``map build`` reports each round's move: ``neighbour_round_moves_m``).  Off by default:
+    # MIT CSAIL (a scan a metre), high noise, seeds 0-3, whose second round still moves the
+    # map 5-9 cm: mean ATE 0.106 -> 0.097 m with 4 rounds at most (0.097 with 3); Intel's
+    # second round moves it 1.2-2.1 cm (seeds 0-15 unchanged; a third round forced: seeds 0-7
+    # 0.0567 -> 0.0575 m); but Killian Court, whose rounds do not settle (0.13, 0.08, 0.11
+    # m), high seeds 0 / 1: 0.54 / 0.60 -> 0.67 / 0.63 m with 4 (0.62 / 0.60 with 3), and
+    # its pass took twice as long
+    max_rounds: int = 2
+    converged: float = 0.03
     coarse_first: bool = True     # the first round farther and with a wider first gate
     prior_step: float = 0.5       # the current estimate as prior, as wide as after this step
     chunk: int = 512              # pairs solved together (memory ~ chunk * segments^2)
@@ -349,6 +361,7 @@ class Mapper:
             self.params.loop.enabled and self.params.loop.sweep_every > 0)
         self.neighbour_edges = 0
         self.sweep_edges = 0  # tracking closures of the last finishing pass's sweep
+        self.round_moves: list = []  # ... and how far each of its rounds moved the map (m)
         self.adjusted: dict = {}  # the line adjustment's figures (lines, observations, ...)
         self.dropped = 0  # nodes dropped by :meth:`compact` so far (node numbers shift)
         # nodes before this one were placed by the last adopted finishing pass: the online
@@ -1019,6 +1032,7 @@ class Mapper:
                 self.graph, self._neighbour_block, self._weighted, edges, job.params)
             self.neighbour_edges = len(edges)
         self.sweep_edges = job.sweep_edges
+        self.round_moves = list(job.round_moves)
         if job.adjusted:
             self.adjusted = job.adjusted
         if job.calibration:
@@ -1251,7 +1265,8 @@ def _replace_neighbour_edges(g: PoseGraph, block: tuple[int, int], weighted: int
 @dataclass
 class FinishJob:
     """The finishing pass (the tracking sweep, ``rounds`` of :func:`neighbour_matches`, each
-    followed by a graph solve, then the line adjustment) on a snapshot of a mapper's graph,
+    followed by a graph solve, more until one moves the map less than ``converged``, then the
+    line adjustment) on a snapshot of a mapper's graph,
     scans and walls; :meth:`run` works on the snapshot only, so it may run in another
     thread."""
 
@@ -1268,6 +1283,7 @@ class FinishJob:
     edges: EdgeArrays = field(default_factory=lambda: EdgeArrays.empty())
     poses: np.ndarray | None = None            # the snapshot's nodes, re-optimised
     pairs: int = 0                             # scan pairs matched, all rounds
+    round_moves: list = field(default_factory=list)  # how far each round moved the map (m)
     sweep_edges: int = 0
     source: object = field(default=None, repr=False)  # the mapper it was taken from
     lines: Contributions | None = None         # the map's scan segments, for ...
@@ -1298,7 +1314,10 @@ class FinishJob:
                     g, self.block, self.weighted, swept, NP)
                 g.optimize(fixed=self.anchors)
                 self.edges = swept
-        for r in range(NP.rounds):
+        moved = None
+        for r in range(max(NP.rounds, NP.max_rounds) if NP.rounds > 0 else 0):
+            if r >= NP.rounds and (moved is None or moved < NP.converged):
+                break
             rp = round_params(NP, r)
             X = np.array(g.poses)
             pairs = neighbour_pairs(X, self.scans, rp)
@@ -1308,6 +1327,7 @@ class FinishJob:
                 self.edges, self.poses = EdgeArrays.empty(), None
                 return self
             if not len(got):
+                moved = None
                 continue
             both = EdgeArrays.concat([swept, got])
             self.block, self.weighted = _replace_neighbour_edges(
@@ -1316,6 +1336,8 @@ class FinishJob:
                 self._recalibrate(got)
             g.optimize(fixed=self.anchors)
             self.edges = both
+            moved = ate(np.array(g.poses), X)["ate_trans_m"]
+            self.round_moves.append(round(moved, 4))
         if self.lines is not None and self.adjust is not None:
             X0 = np.array(g.poses)
             X, self.adjusted = adjust(X0, g, associate(self.lines, X0, self.adjust),

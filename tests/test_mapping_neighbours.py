@@ -243,3 +243,29 @@ def test_the_pass_takes_a_pair_back_from_a_turn_beyond_the_corrections_reach():
         right = len(E) == 1 and abs(np.degrees(E.z[0, 2] - want[2])) < 0.5 and \
             np.hypot(*(E.z[0, :2] - want[:2])) < 0.05
         assert right == ok, (reach, E.z if len(E) else None, want)
+
+
+def test_rounds_go_on_until_one_moves_the_map_less_than_converged():
+    """``rounds`` always; then up to ``max_rounds`` while the last round moved the map (RMS
+    after a rigid alignment) by ``converged`` or more; each round's move is reported."""
+    w = get_world("loop")
+    t = np.arange(0, 1.2 * w.path_length / w.speed, 1.0 / w.speed)
+    truth = np.column_stack(w.trajectory(t))
+    scans = [scan(w, p, n=180, sigma=0.01, seed=k) for k, p in enumerate(truth)]
+    odo = add_odometry_noise(truth, "high", seed=4)
+    m = Mapper(MapperParams(), initial_pose=odo[0])
+    for s, o in zip(scans, odo, strict=True):
+        m.step(s.ranges, s.angle_min, s.angle_increment, o)
+
+    def moves(**kw):
+        NP = NeighbourParams(**kw)
+        return m.finishing_job(NP, sweep=True).run().round_moves
+
+    assert len(moves()) == 2                                   # the default: two rounds
+    assert len(moves(max_rounds=4, converged=0.0)) == 4        # never settled: all four
+    got = moves(max_rounds=4, converged=1e3)                   # settled at once
+    assert len(got) == 2 and all(v >= 0 for v in got)
+    assert len(moves(rounds=1, max_rounds=3, converged=1e3)) == 1
+    assert moves(rounds=0, max_rounds=4, converged=0.0) == []  # rounds 0: no pass at all
+    m.finish()
+    assert len(m.round_moves) == 2
