@@ -30,7 +30,8 @@ bench: $(STAMP_TEST)
 	$(BIN)/python -m bench.run --out bench/results.json
 
 # real data beyond ../shared/data (the MIT Killian Court log), into $$CGAMAP_EXTRA_DATA or
-# ~/.cache/cgamap/data: bench_mapping_killian reads it from there
+# ~/.cache/cgamap/data: bench_mapping_killian reads it from there (bench_mapping_csail reads
+# the MIT CSAIL log there too, when someone put it there: no package ships it)
 data-extra: $(STAMP_TEST)
 	$(BIN)/python -m bench.extra_data
 
