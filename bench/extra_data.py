@@ -58,6 +58,18 @@ def missing(rel: str = KILLIAN) -> dict | None:
     return {"skipped": f"{rel} not found under {extra_dir()} ({_HOW.get(rel, '')})"}
 
 
+def relocalize_on(res, scans, trials: int = 200) -> dict:
+    """Relocalisation trials on a build's map (``offline.BuildResult``), scored against the
+    reference after the build's alignment and against the map's own trajectory
+    (``vs_map_trajectory``): a map that sits off the reference by more than the 0.2 m a
+    success allows fails the first for its own error, not the relocalisation's."""
+    from cgamap.mapping.offline import relocalize_trials
+
+    return relocalize_trials(res.map, scans, trials, seed=0,
+                             alignment=res.report["alignment_to_reference"],
+                             also={"vs_map_trajectory": res.poses})
+
+
 def checked(rel: str, sha256: str) -> dict:
     """Whether the file at ``rel`` is the pinned one (a copy by hand may differ)."""
     got = _sha256((extra_dir() / rel).read_bytes())
