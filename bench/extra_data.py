@@ -116,8 +116,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"extra_data: {exc}", file=sys.stderr)
         return 1
     print(path)
-    if missing(CSAIL):  # not fetchable: say how to add it
-        print(f"extra_data: {missing(CSAIL)['skipped']}", file=sys.stderr)
+    absent = missing(CSAIL)
+    if absent:  # not fetchable: say how to add it
+        print(f"extra_data: {absent['skipped']}", file=sys.stderr)
     return 0
 
 

@@ -1314,9 +1314,9 @@ class FinishJob:
                     g, self.block, self.weighted, swept, NP)
                 g.optimize(fixed=self.anchors)
                 self.edges = swept
-        moved = None
-        for r in range(max(NP.rounds, NP.max_rounds) if NP.rounds > 0 else 0):
-            if r >= NP.rounds and (moved is None or moved < NP.converged):
+        moved = np.inf  # how far the last round moved the map (m)
+        for r in range(max(NP.rounds, NP.max_rounds) if NP.rounds else 0):
+            if r >= NP.rounds and moved < NP.converged:
                 break
             rp = round_params(NP, r)
             X = np.array(g.poses)
@@ -1327,7 +1327,7 @@ class FinishJob:
                 self.edges, self.poses = EdgeArrays.empty(), None
                 return self
             if not len(got):
-                moved = None
+                moved = 0.0  # nothing matched, nothing moved: no further round
                 continue
             both = EdgeArrays.concat([swept, got])
             self.block, self.weighted = _replace_neighbour_edges(
