@@ -51,6 +51,11 @@ class CorrectionParams:
     def prior_information(self, step) -> np.ndarray:
         """The odometry prior's information (x, y, theta) after a step of ``step`` metres
         (a scalar, or an array for a batch: (..., 3))."""
+        if isinstance(step, float | int):
+            # one step (the mapper's, per scan): floats, then the same power on three values
+            st = self.prior_trans + self.prior_trans_per_m * step
+            sr = self.prior_rot + self.prior_rot_per_m * step
+            return np.array([st, st, sr]) ** -2
         step = np.asarray(step, dtype=float)
         st = self.prior_trans + self.prior_trans_per_m * step
         sr = self.prior_rot + self.prior_rot_per_m * step

@@ -85,8 +85,11 @@ def _crossings(pts, ox, oy, a, b, cand, drift, beam_step, end_share, end_margin,
     hits = np.zeros(k, np.int64)
     covered = np.zeros(k)
     rng = np.empty(m)
+    dirs = np.zeros((m, 2))  # each beam's unit direction (none for a zero range)
     for i in range(m):
         rng[i] = math.sqrt((pts[i, 0] - ox) ** 2 + (pts[i, 1] - oy) ** 2)
+        if rng[i] > 0.0:
+            dirs[i, 0], dirs[i, 1] = (pts[i, 0] - ox) / rng[i], (pts[i, 1] - oy) / rng[i]
     edge = np.empty((k, 3))  # per candidate: its direction (x, y) and length
     for c in range(k):
         j = cand[c]
@@ -120,7 +123,7 @@ def _crossings(pts, ox, oy, a, b, cand, drift, beam_step, end_share, end_margin,
             r = rng[i]
             if r <= 0.0:
                 continue
-            dx, dy = (pts[i, 0] - ox) / r, (pts[i, 1] - oy) / r
+            dx, dy = dirs[i, 0], dirs[i, 1]
             den = dx * ey - dy * ex
             sin_inc = abs(den) / L
             if sin_inc < sin_min:  # parallel or grazing

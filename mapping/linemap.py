@@ -108,10 +108,16 @@ class LineMap:
         them goes, the result shares this map's contribution arrays)."""
         keep = np.asarray(keep, bool)
         remap = np.where(keep, np.cumsum(keep) - 1, -1)
-        out = LineMap(self.a[keep], self.b[keep], self.n_pts[keep], self.centroid[keep],
-                      self.scatter[keep], self.n_obs[keep], self.created[keep],
-                      self.last_seen[keep], dict(self.metadata))
-        out.through = self.through[keep]
+        # fields set directly: the constructor's empty contribution columns would be made
+        # only to be replaced (a subset is taken on a third of the scans)
+        out = object.__new__(LineMap)
+        out.__dict__.update(
+            a=self.a[keep], b=self.b[keep], n_pts=self.n_pts[keep],
+            centroid=self.centroid[keep], scatter=self.scatter[keep], n_obs=self.n_obs[keep],
+            created=self.created[keep], last_seen=self.last_seen[keep],
+            metadata=dict(self.metadata), through=self.through[keep],
+            c_seg=self.c_seg, c_node=self.c_node, c_n=self.c_n, c_cent=self.c_cent,
+            c_scat=self.c_scat, c_a=self.c_a, c_b=self.c_b)
         if len(self.c_seg):
             new = remap[self.c_seg]
             ok = new >= 0

@@ -134,6 +134,9 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
         return np.zeros(batch + (k1, k2), bool), np.zeros(batch + (k1, k2))
 
     def flat(v, tail):  # (..., *tail) -> (B, *tail), contiguous float64
+        if (isinstance(v, np.ndarray) and v.dtype == np.float64 and v.shape == batch + tail
+                and v.flags.c_contiguous):
+            return v.reshape((-1,) + tail)  # already so (most calls): no copies to make
         v = np.broadcast_to(np.asarray(v, dtype=float), batch + tail)
         return np.ascontiguousarray(v.reshape((-1,) + tail))
 

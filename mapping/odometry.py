@@ -38,6 +38,7 @@ on every run and machine.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,8 +121,24 @@ def ticks_to_increment(d_left, d_right, geom: WheelGeometry) -> np.ndarray:
     return wheel_distance_to_increment(s_left, s_right, geom.track_width)
 
 
+def _single(p) -> bool:
+    return isinstance(p, np.ndarray) and p.shape == (3,) and p.dtype == np.float64
+
+
+def _wrap1(a: float) -> float:
+    # float % follows the same fmod-and-adjust rule as np.remainder: bit for bit the same
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def compose_pose2d(pose, inc) -> np.ndarray:
     """pose ⊕ inc for (..., 3) arrays (the planar part of M_pose M_inc)."""
+    if _single(pose) and _single(inc):
+        # one pose: the same arithmetic on floats, a tenth of the time of the array path
+        # (the mapper's step composes a few poses per scan)
+        x, y, t = pose.tolist()
+        u, v, w = inc.tolist()
+        c, s = math.cos(t), math.sin(t)
+        return np.array([x + c * u - s * v, y + s * u + c * v, _wrap1(t + w)])
     pose, inc = np.asarray(pose, float), np.asarray(inc, float)
     c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
     return np.stack([pose[..., 0] + c * inc[..., 0] - s * inc[..., 1],
@@ -146,6 +163,12 @@ def integrate_increments(increments, start=(0.0, 0.0, 0.0)) -> np.ndarray:
 def relative(pi, pj) -> np.ndarray:
     """(..., 3) motion from pose pi to pose pj, in pi's frame (inverse of
     :func:`compose_pose2d`: ``compose_pose2d(pi, relative(pi, pj)) == pj``)."""
+    if _single(pi) and _single(pj):
+        x, y, t = pi.tolist()
+        u, v, w = pj.tolist()
+        dx, dy = u - x, v - y
+        c, s = math.cos(t), math.sin(t)
+        return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap1(w - t)])
     pi, pj = np.asarray(pi, float), np.asarray(pj, float)
     d = pj[..., :2] - pi[..., :2]
     c, s = np.cos(pi[..., 2]), np.sin(pi[..., 2])

@@ -18,6 +18,7 @@ from cgamap.mapping.odometry import (
     motor_pose2d,
     planar_motor,
     pose_increments,
+    relative,
     ticks_to_increment,
     velocities,
     wheel_distance_to_increment,
@@ -241,3 +242,21 @@ def test_step_calibration_from_matched_steps():
     naive = np.median(np.hypot(z[:, 0], z[:, 1]) / d)
     assert abs(naive - scale) > 0.005
     assert step_calibration(z[:10], info[:10], raw[:10]) is None  # too few steps
+
+
+def test_single_pose_path_matches_the_array_path_bit_for_bit():
+    # the mapper composes single poses on floats; a last-bit difference would send a long
+    # run down another branch (a closure taken or not), so the two paths must agree exactly
+    from cgamap.mapping.correction import CorrectionParams
+
+    rng = np.random.default_rng(3)
+    P = rng.uniform(-40, 40, (2000, 3))
+    Q = rng.uniform(-40, 40, (2000, 3))
+    P[:, 2] = rng.uniform(-7, 7, 2000)
+    pairs = list(zip(P, Q, strict=True))
+    assert np.array_equal(relative(P, Q), np.array([relative(p, q) for p, q in pairs]))
+    assert np.array_equal(compose_pose2d(P, Q), np.array([compose_pose2d(p, q) for p, q in pairs]))
+    steps = rng.uniform(0, 3, 500)
+    C = CorrectionParams()
+    assert np.array_equal(C.prior_information(steps),
+                          np.array([C.prior_information(float(s)) for s in steps]))
