@@ -99,6 +99,9 @@ def _read_log(path: str, lenient: bool, quiet: bool = False):
         raise UsageError(f"--log: {path}: cannot read ({exc})") from None
     if not scans:
         raise UsageError(f"--log: {path}: no laser scans (FLASER/ROBOTLASER1) in the log")
+    if st.duplicates and not quiet:
+        print(f"--log: {st.duplicates} FLASER scans repeat ROBOTLASER1 scans (same time and "
+              "ranges): read once", file=sys.stderr)
     if st.saturated_range is not None and not quiet:
         print(f"--log: {st.saturated_beams} readings of {st.saturated_range:g} m (the log's "
               "longest, repeated) taken as no return", file=sys.stderr)
@@ -227,6 +230,8 @@ def run_build(args: argparse.Namespace) -> int:
     report = {"log": str(args.log), "odom_noise": args.odom_noise, "seed": args.seed,
               "skipped_lines": st.skipped, **({"params2d": overrides} if overrides else {}),
               **res.report}
+    if st.duplicates:
+        report["duplicate_scans_dropped"] = st.duplicates
     if st.saturated_range is not None:
         report["no_return_reading_m"] = st.saturated_range
         report["no_return_readings"] = st.saturated_beams

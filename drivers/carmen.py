@@ -55,6 +55,9 @@ class CarmenStats:
     # a no-return value the logger wrote as a plain reading (:func:`saturation_range`)
     saturated_range: float | None = None
     saturated_beams: int = 0
+    # FLASER lines that repeat a ROBOTLASER1 line's scan (same time, same ranges): a log
+    # written with both messages per scan (:func:`read_scans` keeps one)
+    duplicates: int = 0
 
 
 def beam_geometry(n: int) -> tuple[float, float]:
@@ -136,8 +139,14 @@ def read_carmen(
     Malformed lines raise CarmenFormatError naming ``file:line``; with ``lenient`` they are
     counted in ``stats.skipped`` and skipped.  Gzipped logs are detected by their magic bytes.
     """
-    path = Path(path)
     st = stats if stats is not None else CarmenStats()
+    for _, msg in _tagged(Path(path), lenient, max_range, st, types):
+        yield msg
+
+
+def _tagged(path: Path, lenient: bool, max_range: float, st: CarmenStats,
+            types: tuple[str, ...]) -> Iterator[tuple[str, LaserScan | OdometryPose]]:
+    """:func:`read_carmen`'s messages, each with its line's kind."""
     seq = {"laser": 0, "rear": 0, "odom": 0}
     with _open(path) as fh:
         for lineno, line in enumerate(fh, start=1):
@@ -174,7 +183,7 @@ def read_carmen(
                     st.first_error = where
                 continue
             st.by_type[kind] = st.by_type.get(kind, 0) + 1
-            yield msg
+            yield kind, msg
 
 
 def read_scans(path: str | Path, *, lenient: bool = False,
@@ -183,15 +192,42 @@ def read_scans(path: str | Path, *, lenient: bool = False,
     ``saturation``, a no-return value written as a reading (:func:`saturation_range`)
     becomes NaN, and ``stats`` records it."""
     st = stats if stats is not None else CarmenStats()
-    scans = [m for m in read_carmen(path, lenient=lenient, stats=st,
-                                    types=("FLASER", "ROBOTLASER1"))
-             if isinstance(m, LaserScan)]
+    tagged = [(k, m) for k, m in _tagged(Path(path), lenient, DEFAULT_MAX_RANGE, st,
+                                        ("FLASER", "ROBOTLASER1"))]
+    scans = [m for _, m in tagged]
+    if st.by_type.get("FLASER") and st.by_type.get("ROBOTLASER1"):
+        scans = _without_repeats(tagged, st)
     if saturation:
         limit = saturation_range(scans)
         if limit is not None:
             st.saturated_range = limit
             st.saturated_beams = sum(drop_saturated(s, limit) for s in scans)
     return scans
+
+
+def _without_repeats(tagged: list[tuple[str, LaserScan]], st: CarmenStats,
+                     tol_ns: int = 1_000_000, tol_m: float = 0.011) -> list[LaserScan]:
+    """The scans without the FLASER ones that repeat a ROBOTLASER1 scan: the same beam
+    count, stamps within ``tol_ns``, finite ranges within ``tol_m`` (the two lines may round
+    differently) and no-returns in the same beams.  Mapped twice, each scan would be matched
+    against itself.  A FLASER scan of another laser, or of another time, stays."""
+    by_stamp: dict[int, list[LaserScan]] = {}
+    for kind, s in tagged:
+        if kind == "ROBOTLASER1":
+            by_stamp.setdefault(s.stamp_ns // tol_ns, []).append(s)
+
+    def repeats(s: LaserScan) -> bool:
+        k = s.stamp_ns // tol_ns
+        for r in (*by_stamp.get(k - 1, ()), *by_stamp.get(k, ()), *by_stamp.get(k + 1, ())):
+            if (abs(r.stamp_ns - s.stamp_ns) <= tol_ns and len(r.ranges) == len(s.ranges)
+                    and np.array_equal(np.isnan(r.ranges), np.isnan(s.ranges))
+                    and np.nanmax(np.abs(r.ranges - s.ranges), initial=0.0) <= tol_m):
+                return True
+        return False
+
+    kept = [s for kind, s in tagged if kind == "ROBOTLASER1" or not repeats(s)]
+    st.duplicates = len(tagged) - len(kept)
+    return kept
 
 
 SATURATION_TOL = 0.0051  # readings this close below the top count as it (cm-rounded logs)

@@ -187,3 +187,31 @@ def test_a_longest_reading_seen_once_is_a_reading(tmp_path):
     assert st.saturated_range is None and st.saturated_beams == 0
     assert scans[0].ranges[0] == pytest.approx(25.37)
     assert sum(np.isfinite(s.ranges).sum() for s in scans) == 30 * 90
+
+
+def test_a_scan_written_as_both_flaser_and_robotlaser_is_read_once(tmp_path):
+    # some loggers write each scan twice (old FLASER and new ROBOTLASER1): mapped twice,
+    # every scan would match itself; a FLASER scan of its own time stays
+    beams = np.linspace(1.0, 4.0, 180)
+    scans = [LaserScan(seq=k, stamp_ns=1_000_000_000 * (k + 1), angle_min=-math.pi / 2,
+                       angle_increment=math.pi / 180, ranges=beams + k,
+                       pose_ref=(k, 0.0, 0.0)) for k in range(3)]
+    flaser, robot = tmp_path / "f.log", tmp_path / "r.log"
+    write_carmen(flaser, scans)
+    write_carmen(robot, scans, kind="ROBOTLASER1")
+    f_lines, r_lines = flaser.read_text().splitlines(True), robot.read_text().splitlines(True)
+    body_f = [x for x in f_lines if x.startswith("FLASER")]
+    body_r = [x for x in r_lines if x.startswith("ROBOTLASER1")]
+    # both kinds of the first two scans, then the third scan as FLASER only, and a
+    # FLASER at the second's time with other ranges (another laser) also stays
+    other = body_f[1].replace(" 2.000 ", " 7.000 ", 1)
+    log = tmp_path / "both.log"
+    log.write_text("".join([body_r[0], body_f[0], body_r[1], body_f[1], other, body_f[2]]))
+    st = CarmenStats()
+    got = read_scans(log, stats=st)
+    assert st.duplicates == 2 and len(got) == 4
+    assert [s.stamp_ns for s in got] == [1_000_000_000, 2_000_000_000, 2_000_000_000,
+                                          3_000_000_000]
+    # a log of one kind is read whole
+    st = CarmenStats()
+    assert len(read_scans(flaser, stats=st)) == 3 and st.duplicates == 0
