@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .jit import kernel
-from .matching import LineIndex, line_normals, match_index, near_box, pair_cost
+from .matching import LineIndex, line_normals, match_index, near_box, near_segments, pair_cost
 from .segments import Segments
 
 _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate quadratics exactly
@@ -59,7 +59,10 @@ class CorrectionParams:
         step = np.asarray(step, dtype=float)
         st = self.prior_trans + self.prior_trans_per_m * step
         sr = self.prior_rot + self.prior_rot_per_m * step
-        return np.stack([st ** -2, st ** -2, sr ** -2], -1)
+        out = np.empty(step.shape + (3,))
+        out[..., 0] = out[..., 1] = st ** -2
+        out[..., 2] = sr ** -2
+        return out
 
 
 @dataclass
@@ -265,29 +268,31 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
     pred = np.asarray(predicted, dtype=float)
     k = len(seg_l)
     L = seg_l.length
-    prior_cov = np.diag(1.0 / params.prior_information(step))
-    unmatched = Correction(pred.copy(), prior_cov, 0.0, float(L.sum()), 0.0, np.full(k, -1))
+
+    def unmatched() -> Correction:
+        prior_cov = np.diag(1.0 / params.prior_information(step))
+        return Correction(pred.copy(), prior_cov, 0.0, float(L.sum()), 0.0, np.full(k, -1))
+
     if k == 0 or len(map_a) == 0:
-        return unmatched
+        return unmatched()
     # map segments anywhere near the scan under the widest gate; later passes look only there
     ga, gb = _transform(seg_l.a, pred), _transform(seg_l.b, pred)
     wide = max(params.gates) * 1.5
     # only map segments whose eq. (15) sphere can reach the scan's: centre within the sum of
     # the radii (+ the margin on both) of the scan's bounding box
+    reach = 0.5 * float(L.max()) + 2.0 * wide
     if map_index is not None:
-        centre, half = map_index.centre, map_index.half
-    else:
-        centre, half = 0.5 * (map_a + map_b), 0.5 * np.linalg.norm(map_b - map_a, axis=-1)
-    box = near_box(centre, half, ga, gb, 0.5 * float(L.max()) + 2.0 * wide)
-    if map_index is not None:
+        box = near_box(map_index.centre, map_index.half, ga, gb, reach)
         index = map_index.subset(box)
     else:
+        box = near_segments(map_a, map_b, ga, gb, reach)
         ab, bb = map_a[box], map_b[box]
-        index = LineIndex(ab, bb, centre[box], half[box], *line_normals(ab, bb))
+        index = LineIndex(ab, bb, 0.5 * (ab + bb), 0.5 * np.linalg.norm(bb - ab, axis=-1),
+                          *line_normals(ab, bb))
     ok0, _ = match_index(ga, gb, index, np.deg2rad(max(params.angle_gates_deg)), wide)
     near = box[np.nonzero(ok0.any(axis=0))[0]]
     if not len(near):
-        return unmatched
+        return unmatched()
     sub = index.subset(np.searchsorted(box, near))
     res = correct_batch(seg_l.a[None], seg_l.b[None],
                         LineIndex(*(v[None] for v in vars(sub).values())), pred[None], step,

@@ -85,6 +85,38 @@ def near_box(centre: np.ndarray, half: np.ndarray, a: np.ndarray, b: np.ndarray,
     return np.nonzero(np.all((centre >= lo - pad) & (centre <= hi + pad), axis=1))[0]
 
 
+def near_segments(map_a: np.ndarray, map_b: np.ndarray, a: np.ndarray, b: np.ndarray,
+                  reach: float) -> np.ndarray:
+    """:func:`near_box` for map segments given by their end points (their centres and half
+    lengths computed on the way, in the same arithmetic): one compiled pass over the map
+    instead of a dozen array calls over it, on every scan."""
+    f = np.ascontiguousarray
+    if not len(a) or not len(map_a):
+        return np.zeros(0, np.int64)
+    return _near_segments(f(map_a, dtype=float), f(map_b, dtype=float), f(a, dtype=float),
+                          f(b, dtype=float), float(reach))
+
+
+@kernel
+def _near_segments(ma, mb, a, b, reach):
+    lo_x = hi_x = a[0, 0]
+    lo_y = hi_y = a[0, 1]
+    for p in (a, b):
+        for i in range(len(p)):
+            lo_x, hi_x = min(lo_x, p[i, 0]), max(hi_x, p[i, 0])
+            lo_y, hi_y = min(lo_y, p[i, 1]), max(hi_y, p[i, 1])
+    out = np.empty(len(ma), np.int64)
+    n = 0
+    for j in range(len(ma)):
+        dx, dy = mb[j, 0] - ma[j, 0], mb[j, 1] - ma[j, 1]
+        pad = reach + 0.5 * math.sqrt(dx * dx + dy * dy)
+        cx, cy = 0.5 * (ma[j, 0] + mb[j, 0]), 0.5 * (ma[j, 1] + mb[j, 1])
+        if lo_x - pad <= cx <= hi_x + pad and lo_y - pad <= cy <= hi_y + pad:
+            out[n] = j
+            n += 1
+    return out[:n]
+
+
 @dataclass
 class LineIndex:
     """Per-segment quantities of a fixed segment set (the map side of a match), computed

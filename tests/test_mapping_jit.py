@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from cgamap.mapping import jit
 from cgamap.mapping.linemap import fuse_groups
-from cgamap.mapping.matching import LineIndex, match_index
+from cgamap.mapping.matching import LineIndex, match_index, near_box, near_segments
 from cgamap.mapping.segments import _moments
 
 
@@ -101,3 +101,19 @@ def test_warm_up_leaves_no_kernel_to_compile_on_a_scan():
     inner = {n for k in kernels.values() for n in k.py_func.__code__.co_names}
     assert not [name for name, k in kernels.items()
                 if not k.signatures and name.rsplit(".", 1)[1] not in inner]
+
+
+def test_near_segments_is_near_box_on_end_points():
+    """The compiled first cut picks exactly the segments the array one picks, from the end
+    points alone (centres and half lengths computed the same way on the way)."""
+    rng = np.random.default_rng(11)
+    ma = rng.uniform(-30, 30, (800, 2))
+    mb = ma + rng.normal(0, 2, (800, 2))
+    for _ in range(20):
+        a = rng.uniform(-5, 5, (12, 2)) + rng.uniform(-20, 20, 2)
+        b = a + rng.normal(0, 1, (12, 2))
+        reach = float(rng.uniform(0.1, 3))
+        want = near_box(0.5 * (ma + mb), 0.5 * np.linalg.norm(mb - ma, axis=-1), a, b, reach)
+        got = near_segments(ma, mb, a, b, reach)
+        assert np.array_equal(got, want) and len(want)
+    assert len(near_segments(ma[:0], mb[:0], a, b, 1.0)) == 0
