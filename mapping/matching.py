@@ -161,7 +161,8 @@ def match_index(a1: np.ndarray, b1: np.ndarray, idx: LineIndex, max_angle: float
     (..., k1, k2), each batch element matched only against its own segment set."""
     margin = max_dist if margin is None else margin
     k1, k2 = a1.shape[-2], idx.a.shape[-2]
-    batch = np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2])
+    batch = (() if a1.ndim == 2 and idx.a.ndim == 2  # one problem (most calls)
+             else np.broadcast_shapes(a1.shape[:-2], idx.a.shape[:-2]))
     if k1 == 0 or k2 == 0:
         return np.zeros(batch + (k1, k2), bool), np.zeros(batch + (k1, k2))
 

@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 from cgamap.mapping import jit
-from cgamap.mapping.linemap import fuse_groups
+from cgamap.mapping.linemap import fuse_groups, unique_inverse
 from cgamap.mapping.matching import LineIndex, match_index, near_box, near_segments
 from cgamap.mapping.segments import _moments
 
@@ -117,3 +117,14 @@ def test_near_segments_is_near_box_on_end_points():
         got = near_segments(ma, mb, a, b, reach)
         assert np.array_equal(got, want) and len(want)
     assert len(near_segments(ma[:0], mb[:0], a, b, 1.0)) == 0
+
+
+def test_unique_inverse_is_numpys():
+    rng = np.random.default_rng(12)
+    for n in (0, 1, 2, 7, 60, 400):
+        for _ in range(20):
+            x = rng.integers(0, 50, n)
+            want = np.unique(x, return_inverse=True)
+            got = unique_inverse(x)
+            assert all(np.array_equal(g, w) and g.dtype == w.dtype
+                       for g, w in zip(got, want, strict=True))
