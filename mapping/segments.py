@@ -310,21 +310,41 @@ def extract_segments(ranges: np.ndarray, angle_min: float, angle_increment: floa
         out = empty_segments()
         out.points = p
         return out
-    n, c, S = _moments(p, starts, ends, cs)
-    d, ms, spread = tls_from_moments(n, c, S)
-    # end points: first and last point projected on the refitted line
-    ta = np.sum((p[starts] - c) * d, axis=-1)
-    tb = np.sum((p[ends - 1] - c) * d, axis=-1)
-    a = c + ta[:, None] * d
-    b = c + tb[:, None] * d
-    length = np.abs(tb - ta)
-    keep = (n >= params.min_points) & (length >= params.min_length)
-    sigma2 = np.maximum(ms * n / np.maximum(n - 2, 1), params.sigma_range ** 2)
-    cov = np.zeros((len(n), 2, 2))
-    cov[:, 0, 0] = sigma2 / np.maximum(spread, 1e-9)
-    cov[:, 1, 1] = sigma2 / n
-    seg = Segments(a, b, n.astype(int), np.sqrt(ms), c, S, cov, p)
-    return seg.subset(keep)
+    a, b, n, res, c, S, cov = _fitted(p, cs, starts, ends, float(params.min_points),
+                                      float(params.min_length), float(params.sigma_range ** 2))
+    return Segments(a, b, n, res, c, S, cov, p)
+
+
+@kernel
+def _fitted(p, cs, starts, ends, min_points, min_length, var_floor):
+    """The segments of the runs ``starts``-``ends``: each run's moments and total-least-
+    squares line, its end points (the first and last point projected on the line), the
+    RMS residual, and the covariance of (normal angle, offset at the centroid) from the
+    residual (at least ``var_floor``) and the spread along the line; only the runs of
+    ``min_points`` points and ``min_length`` metres or more."""
+    k = len(starts)
+    a, b, c = np.empty((k, 2)), np.empty((k, 2)), np.empty((k, 2))
+    S, cov = np.empty((k, 2, 2)), np.zeros((k, 2, 2))
+    n_out, res = np.empty(k, np.int64), np.empty(k)
+    m = 0
+    for i in range(k):
+        n, cx, cy, sxx, sxy, syy = _run_moments(cs, starts[i], ends[i])
+        ms, spread, dx, dy = tls_fit(n, sxx, sxy, syy)
+        s0, e0 = starts[i], ends[i] - 1
+        ta = (p[s0, 0] - cx) * dx + (p[s0, 1] - cy) * dy
+        tb = (p[e0, 0] - cx) * dx + (p[e0, 1] - cy) * dy
+        if not (n >= min_points and abs(tb - ta) >= min_length):
+            continue
+        a[m, 0], a[m, 1] = cx + ta * dx, cy + ta * dy
+        b[m, 0], b[m, 1] = cx + tb * dx, cy + tb * dy
+        c[m, 0], c[m, 1] = cx, cy
+        S[m, 0, 0], S[m, 0, 1], S[m, 1, 0], S[m, 1, 1] = sxx, sxy, sxy, syy
+        var = max(ms * n / max(n - 2.0, 1.0), var_floor)
+        cov[m, 0, 0] = var / max(spread, 1e-9)
+        cov[m, 1, 1] = var / n
+        n_out[m], res[m] = int(n), np.sqrt(ms)
+        m += 1
+    return a[:m], b[:m], n_out[:m], res[:m], c[:m], S[:m], cov[:m]
 
 
 def segments_from_scan(scan, params: SegmentParams | None = None) -> Segments:
