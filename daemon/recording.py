@@ -171,16 +171,32 @@ def read_messages(path: str | Path) -> Iterator[Any]:
     if is_mcap(path):
         yield from read_mcap(path)
         return
-    from cgamap.drivers.carmen import drop_saturated, read_carmen, saturation_range
+    from cgamap.drivers.carmen import (
+        CarmenStats,
+        RepeatIndex,
+        drop_saturated,
+        read_tagged,
+        saturation_range,
+    )
 
     # a no-return value the log keeps as a reading (an LMS's 8 m mode): found in a first
     # pass over the scans, dropped as ``map build`` drops it
-    limit = saturation_range(m for m in read_carmen(path, lenient=True,
-                                                    types=("FLASER", "ROBOTLASER1")))
+    st = CarmenStats()
+    limit = saturation_range(m for _, m in read_tagged(path, lenient=True, stats=st,
+                                                       types=("FLASER", "ROBOTLASER1")))
     if limit is not None:
         log.info("replay: readings of %g m (the log's longest, repeated) taken as no return",
                  limit)
-    for msg in read_carmen(path, lenient=True):
+    # each scan written twice (FLASER and ROBOTLASER1): replayed once, as ``map build`` reads it
+    index = (RepeatIndex(m for _, m in read_tagged(path, lenient=True, types=("ROBOTLASER1",)))
+             if st.by_type.get("FLASER") and st.by_type.get("ROBOTLASER1") else None)
+    dropped = 0
+    for kind, msg in read_tagged(path, lenient=True):
+        if index is not None and index.repeats(kind, msg):
+            dropped += 1
+            continue
         if limit is not None and isinstance(msg, LaserScan) and msg.frame == "laser":
             drop_saturated(msg, limit)
         yield msg
+    if dropped:
+        log.info("replay: %d FLASER scans repeated ROBOTLASER1 scans: replayed once", dropped)

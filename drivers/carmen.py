@@ -139,14 +139,22 @@ def read_carmen(
     Malformed lines raise CarmenFormatError naming ``file:line``; with ``lenient`` they are
     counted in ``stats.skipped`` and skipped.  Gzipped logs are detected by their magic bytes.
     """
-    st = stats if stats is not None else CarmenStats()
-    for _, msg in _tagged(Path(path), lenient, max_range, st, types):
+    for _, msg in read_tagged(path, lenient=lenient, max_range=max_range, stats=stats,
+                              types=types):
         yield msg
 
 
-def _tagged(path: Path, lenient: bool, max_range: float, st: CarmenStats,
-            types: tuple[str, ...]) -> Iterator[tuple[str, LaserScan | OdometryPose]]:
-    """:func:`read_carmen`'s messages, each with its line's kind."""
+def read_tagged(
+    path: str | Path,
+    *,
+    lenient: bool = False,
+    max_range: float = DEFAULT_MAX_RANGE,
+    stats: CarmenStats | None = None,
+    types: tuple[str, ...] = ("FLASER", "RLASER", "ROBOTLASER1", "ODOM"),
+) -> Iterator[tuple[str, LaserScan | OdometryPose]]:
+    """:func:`read_carmen`'s messages, each with its line's kind (``"FLASER"``, ...)."""
+    path = Path(path)
+    st = stats if stats is not None else CarmenStats()
     seq = {"laser": 0, "rear": 0, "odom": 0}
     with _open(path) as fh:
         for lineno, line in enumerate(fh, start=1):
@@ -192,11 +200,13 @@ def read_scans(path: str | Path, *, lenient: bool = False,
     ``saturation``, a no-return value written as a reading (:func:`saturation_range`)
     becomes NaN, and ``stats`` records it."""
     st = stats if stats is not None else CarmenStats()
-    tagged = [(k, m) for k, m in _tagged(Path(path), lenient, DEFAULT_MAX_RANGE, st,
-                                        ("FLASER", "ROBOTLASER1"))]
+    tagged = list(read_tagged(path, lenient=lenient, stats=st,
+                              types=("FLASER", "ROBOTLASER1")))
     scans = [m for _, m in tagged]
     if st.by_type.get("FLASER") and st.by_type.get("ROBOTLASER1"):
-        scans = _without_repeats(tagged, st)
+        index = RepeatIndex(m for k, m in tagged if k == "ROBOTLASER1")
+        scans = [m for k, m in tagged if not index.repeats(k, m)]
+        st.duplicates = len(tagged) - len(scans)
     if saturation:
         limit = saturation_range(scans)
         if limit is not None:
@@ -205,29 +215,34 @@ def read_scans(path: str | Path, *, lenient: bool = False,
     return scans
 
 
-def _without_repeats(tagged: list[tuple[str, LaserScan]], st: CarmenStats,
-                     tol_ns: int = 1_000_000, tol_m: float = 0.011) -> list[LaserScan]:
-    """The scans without the FLASER ones that repeat a ROBOTLASER1 scan: the same beam
-    count, stamps within ``tol_ns``, finite ranges within ``tol_m`` (the two lines may round
-    differently) and no-returns in the same beams.  Mapped twice, each scan would be matched
-    against itself.  A FLASER scan of another laser, or of another time, stays."""
-    by_stamp: dict[int, list[LaserScan]] = {}
-    for kind, s in tagged:
-        if kind == "ROBOTLASER1":
-            by_stamp.setdefault(s.stamp_ns // tol_ns, []).append(s)
+class RepeatIndex:
+    """A log's ROBOTLASER1 scans by time, to tell the FLASER lines that repeat them: some
+    loggers write each scan twice, and mapped twice each scan would be matched against
+    itself.  A repeat has the same beam count, a stamp within ``tol_ns``, its finite ranges
+    within ``tol_m`` (the two lines may round differently) and its no-returns in the same
+    beams; a FLASER scan of another laser, or of another time, is none."""
 
-    def repeats(s: LaserScan) -> bool:
-        k = s.stamp_ns // tol_ns
-        for r in (*by_stamp.get(k - 1, ()), *by_stamp.get(k, ()), *by_stamp.get(k + 1, ())):
-            if (abs(r.stamp_ns - s.stamp_ns) <= tol_ns and len(r.ranges) == len(s.ranges)
-                    and np.array_equal(np.isnan(r.ranges), np.isnan(s.ranges))
-                    and np.nanmax(np.abs(r.ranges - s.ranges), initial=0.0) <= tol_m):
+    def __init__(self, robot_scans: Iterable[LaserScan], tol_ns: int = 1_000_000,
+                 tol_m: float = 0.011):
+        self.tol_ns, self.tol_m = tol_ns, tol_m
+        self._by: dict[int, list[tuple[int, np.ndarray]]] = {}
+        for s in robot_scans:  # float32 copies: a long log's ranges, kept only for this
+            self._by.setdefault(s.stamp_ns // tol_ns, []).append(
+                (s.stamp_ns, np.asarray(s.ranges, np.float32)))
+
+    def repeats(self, kind: str, scan: LaserScan) -> bool:
+        """Whether ``scan``, read from a ``kind`` line, is a FLASER copy of a ROBOTLASER1 one."""
+        if kind != "FLASER":
+            return False
+        k = scan.stamp_ns // self.tol_ns
+        r = np.asarray(scan.ranges, np.float32)
+        for t, other in (*self._by.get(k - 1, ()), *self._by.get(k, ()),
+                         *self._by.get(k + 1, ())):
+            if (abs(t - scan.stamp_ns) <= self.tol_ns and len(other) == len(r)
+                    and np.array_equal(np.isnan(other), np.isnan(r))
+                    and np.nanmax(np.abs(other - r), initial=0.0) <= self.tol_m):
                 return True
         return False
-
-    kept = [s for kind, s in tagged if kind == "ROBOTLASER1" or not repeats(s)]
-    st.duplicates = len(tagged) - len(kept)
-    return kept
 
 
 SATURATION_TOL = 0.0051  # readings this close below the top count as it (cm-rounded logs)

@@ -215,3 +215,8 @@ def test_a_scan_written_as_both_flaser_and_robotlaser_is_read_once(tmp_path):
     # a log of one kind is read whole
     st = CarmenStats()
     assert len(read_scans(flaser, stats=st)) == 3 and st.duplicates == 0
+    # and the daemon's replay plays each scan once too
+    from cgamap.daemon.recording import read_messages
+
+    played = [m for m in read_messages(log) if isinstance(m, LaserScan)]
+    assert [s.stamp_ns for s in played] == [s.stamp_ns for s in got]
