@@ -162,25 +162,6 @@ def _run_moments(cs, s, e):
             cs[e, 4] - cs[s, 4] - n * cy * cy)
 
 
-@kernel
-def _moments_into(cs, starts, ends, n, c, S):
-    for i in range(len(starts)):
-        n[i], c[i, 0], c[i, 1], S[i, 0, 0], S[i, 0, 1], S[i, 1, 1] = _run_moments(
-            cs, starts[i], ends[i])
-        S[i, 1, 0] = S[i, 0, 1]
-
-
-def _moments(p: np.ndarray, starts: np.ndarray, ends: np.ndarray,
-             cs: np.ndarray | None = None):
-    """Counts, centroids and centred scatter matrices of p[starts[i]:ends[i]] (``cs``: the
-    points' :func:`_prefix_moments`, when already at hand)."""
-    cs = _prefix_moments(np.ascontiguousarray(p, dtype=float)) if cs is None else cs
-    k = len(starts)
-    n, c, S = np.empty(k), np.empty((k, 2)), np.empty((k, 2, 2))
-    _moments_into(cs, np.asarray(starts, np.int64), np.asarray(ends, np.int64), n, c, S)
-    return n, c, S
-
-
 def scan_points(ranges: np.ndarray, angle_min: float, angle_increment: float,
                 params: SegmentParams) -> tuple[np.ndarray, np.ndarray]:
     """Valid points (m, 2) in beam order and their ranges, after the range filter."""

@@ -10,7 +10,6 @@ import pytest
 from cgamap.mapping import jit
 from cgamap.mapping.linemap import fuse_groups, unique_inverse
 from cgamap.mapping.matching import LineIndex, match_index, near_box, near_segments
-from cgamap.mapping.segments import _moments
 
 
 def test_fused_groups_are_the_fit_of_all_their_points():
@@ -26,9 +25,9 @@ def test_fused_groups_are_the_fit_of_all_their_points():
             sets.append(t[:, None] * d + offset * nrm + rng.normal(0, 0.01, (len(t), 1)) * nrm)
             group.append(g)
     group = np.array(group)
-    bounds = np.cumsum([0] + [len(s) for s in sets])
-    pts = np.concatenate(sets)
-    n, c, S = _moments(pts, bounds[:-1], bounds[1:])
+    n = np.array([len(p) for p in sets], float)
+    c = np.array([p.mean(0) for p in sets])
+    S = np.array([(p - p.mean(0)).T @ (p - p.mean(0)) for p in sets])
     a = np.array([s[0] for s in sets])
     b = np.array([s[-1] for s in sets])
     N, C, Sg, pa, pb, rms = fuse_groups(group, 4, n, c, S, a, b)  # group 3 has no member
