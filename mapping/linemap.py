@@ -108,16 +108,7 @@ class LineMap:
         them goes, the result shares this map's contribution arrays)."""
         keep = np.asarray(keep, bool)
         remap = np.where(keep, np.cumsum(keep) - 1, -1)
-        # fields set directly: the constructor's empty contribution columns would be made
-        # only to be replaced (a subset is taken on a third of the scans)
-        out = object.__new__(LineMap)
-        out.__dict__.update(
-            a=self.a[keep], b=self.b[keep], n_pts=self.n_pts[keep],
-            centroid=self.centroid[keep], scatter=self.scatter[keep], n_obs=self.n_obs[keep],
-            created=self.created[keep], last_seen=self.last_seen[keep],
-            metadata=dict(self.metadata), through=self.through[keep],
-            c_seg=self.c_seg, c_node=self.c_node, c_n=self.c_n, c_cent=self.c_cent,
-            c_scat=self.c_scat, c_a=self.c_a, c_b=self.c_b)
+        out = self._rows(keep)
         if len(self.c_seg):
             new = remap[self.c_seg]
             ok = new >= 0
@@ -132,6 +123,20 @@ class LineMap:
                 out.c_seg, out.c_node, out.c_n = new[ok], self.c_node[ok], self.c_n[ok]
                 out.c_cent, out.c_scat = self.c_cent[ok], self.c_scat[ok]
                 out.c_a, out.c_b = self.c_a[ok], self.c_b[ok]
+        return out
+
+    def _rows(self, keep: np.ndarray) -> LineMap:
+        """The segments selected by boolean ``keep``, sharing this map's contribution rows
+        as they are (the caller renumbers or drops them).  Fields set directly: the
+        constructor's empty contribution columns would be made only to be replaced."""
+        out = object.__new__(LineMap)
+        out.__dict__.update(
+            a=self.a[keep], b=self.b[keep], n_pts=self.n_pts[keep],
+            centroid=self.centroid[keep], scatter=self.scatter[keep], n_obs=self.n_obs[keep],
+            created=self.created[keep], last_seen=self.last_seen[keep],
+            metadata=dict(self.metadata), through=self.through[keep],
+            c_seg=self.c_seg, c_node=self.c_node, c_n=self.c_n, c_cent=self.c_cent,
+            c_scat=self.c_scat, c_a=self.c_a, c_b=self.c_b)
         return out
 
     def add_contributions(self, target: np.ndarray, node: int, seg_l: Segments) -> None:
@@ -453,15 +458,12 @@ def _fold(lmap: LineMap, keep: np.ndarray, remap: np.ndarray,
     went into, renumbered.  The contribution rows stay where they are: one pass over their
     segment numbers, where redirecting and then subsetting made three (tens of thousands
     of rows, on a third of the scans)."""
-    c_seg = lmap.c_seg
-    if len(c_seg):
-        red = np.arange(len(lmap))
-        for r, j0 in pairs:
-            red[r] = j0
-        c_seg = remap[red][c_seg]
-    lmap.c_seg = c_seg[:0]  # the subset below has no contribution to drop or renumber
-    _assign(lmap, lmap.subset(keep))
-    lmap.c_seg = c_seg
+    red = np.arange(len(lmap))
+    for r, j0 in pairs:
+        red[r] = j0
+    out = lmap._rows(keep)
+    out.c_seg = remap[red][lmap.c_seg]
+    _assign(lmap, out)
 
 
 _FIELDS = ("a", "b", "n_pts", "centroid", "scatter", "n_obs", "created", "last_seen",
