@@ -64,16 +64,24 @@ def warm_up() -> float:
                    float(beams[1] - beams[0]))
     # relocalisation's line-pair solve and hypothesis score (a trial or the daemon's first
     # relocalisation must not pay for their compilation)
-    from .relocalize import DistanceField, _branch_and_bound, _pair_translations, _score
+    from .relocalize import (
+        DistanceField,
+        _best_distinct,
+        _branch_and_bound,
+        _pair_translations,
+        _score,
+    )
     one = np.ones((1, 2))
     _pair_translations(one, one, *(np.ones(1),) * 2, one, *(np.ones(1),) * 2, one,
                        *(np.ones(1),) * 4, 1.0, 1.0)
+    field = DistanceField(lmap, 0.05)
     for soft in (False, True):
-        _score(DistanceField(lmap, 0.05), seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
+        _score(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
+    _best_distinct(field, seg.points, np.zeros((2, 2)), np.zeros(2), 0.2, 0.3, 0.05, 1)
     # a big map's coarse-to-fine sweep
     idx = np.zeros((1, 1), np.int64)
     _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,
-                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.uint16), 0, 0,
+                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.uint16), 0, 0, 1,
                       np.zeros((3, 1, 1), np.int64))
     # the finishing pass's turn from the walls' directions
     from .slam2d import pair_turns

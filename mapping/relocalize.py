@@ -47,6 +47,7 @@ are returned, ranked.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -494,23 +495,23 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     if near is not None:
         keep = _near(T, th, near)
         T, th = T[keep], th[keep]
-    scores = _score(field, pts, T, th, P.coarse_dist)
     if P.point_refine:
-        hyps = _verify_points(field, seg.points, T, th, scores, P)
+        hyps = _verify_points(field, seg.points, T, th, pts, P)
         if P.sweep_cells and P.fallback_fit and (
                 not hyps or max(h.fit for h in hyps) < P.fallback_fit):
             # the free-space band the all-rotation sweep is restricted to (a bound from
             # the scan's ranges)
             reach = _reach(seg.points, P, field.res)
-            T2, th2, sc2 = _fallback_sweep(
-                field, pts, P, reach, near=near if P.sweep_near else None)
+            T2, th2 = _fallback_sweep(field, pts, P, reach,
+                                      near=near if P.sweep_near else None)
             if near is not None:
                 keep = _near(T2, th2, near)
-                T2, th2, sc2 = T2[keep], th2[keep], sc2[keep]
-            hyps += _verify_points(field, seg.points, T2, th2, sc2,
+                T2, th2 = T2[keep], th2[keep]
+            hyps += _verify_points(field, seg.points, T2, th2, pts,
                                    replace(P, icp_candidates=P.fallback_icp,
                                            final_candidates=P.fallback_final))
         return _ranked(hyps, P)
+    scores = _score(field, pts, T, th, P.coarse_dist)
     best = np.argsort(-scores)[: max(P.refine * 3, P.refine)]
     hyps: list[Hypothesis] = []
     index = LineIndex.of(lmap.a, lmap.b)
@@ -562,22 +563,120 @@ def _near(T: np.ndarray, th: np.ndarray, near: tuple) -> np.ndarray:
         np.abs(_wrap(th - near[0][2])) < near[2])
 
 
+def _cell_keys(T: np.ndarray, th: np.ndarray, cell: float, ang: float) -> np.ndarray:
+    """One integer per (x, y, theta) cell of ``cell`` metres and ``ang`` radians for each
+    candidate (T, th): equal keys, one cell (a 1-D unique sorts far faster than rows)."""
+    kx = np.floor(T[:, 0] / cell).astype(np.int64)
+    ky = np.floor(T[:, 1] / cell).astype(np.int64)
+    kt = np.floor(np.mod(th, 2 * np.pi) / ang).astype(np.int64)
+    kx -= kx.min()
+    ky -= ky.min()
+    return (kx * (int(ky.max()) + 1) + ky) * (int(kt.max()) + 1) + kt
+
+
 def _distinct(T: np.ndarray, th: np.ndarray, order: np.ndarray, cell: float, ang: float,
               k: int) -> np.ndarray:
     """The first ``k`` of ``order`` that fall in different (x, y, theta) cells: the best
     candidate of each cell, so near-duplicates do not crowd out other places."""
     if not len(order):
         return order
-    kx = np.floor(T[order, 0] / cell).astype(np.int64)
-    ky = np.floor(T[order, 1] / cell).astype(np.int64)
-    kt = np.floor(np.mod(th[order], 2 * np.pi) / ang).astype(np.int64)
-    kx -= kx.min()
-    ky -= ky.min()
-    # one integer per cell (a 1-D unique sorts far faster than rows); the stable sort keeps
-    # the first -- best -- candidate of each cell
-    key = (kx * (int(ky.max()) + 1) + ky) * (int(kt.max()) + 1) + kt
-    _, first = np.unique(key, return_index=True)
+    # the stable sort keeps the first -- best -- candidate of each cell
+    _, first = np.unique(_cell_keys(T[order], th[order], cell, ang), return_index=True)
     return order[np.sort(first)[:k]]
+
+
+def _best_distinct(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
+                   inlier: float, cell: float, ang: float, k: int) -> np.ndarray:
+    """The ``k`` best candidates by their inlier fraction (:func:`_score` at ``inlier``,
+    ties by index), one per (x, y, theta) cell: :func:`_distinct` of the candidates ranked
+    by that score, the same indices, without counting every candidate's points to the end.
+    A big building's map gives 10^4-10^5 candidates, most of them nowhere near a wall, and
+    their full count was a fifth of a trial.  Once k cells hold a candidate with count c
+    or more, the k cells picked all reach c, and a later candidate that cannot beat c (its
+    points left to read would not make up the difference; at c exactly, the k earlier
+    ones come first) is never picked: its count stops there (:func:`_pruned_counts`)."""
+    if not len(T) or not len(pts) or field.far < inlier:
+        # nothing to prune by (or off-grid points count: the packed bits cannot say it)
+        order = np.argsort(-_score(field, pts, T, th, inlier), kind="stable")
+        return _distinct(T, th, order, cell, ang, k)
+    cells, cid = np.unique(_cell_keys(T, th, cell, ang), return_inverse=True)
+    counts = np.empty(len(T), np.int64)
+    _pruned_counts(field.inlier_bits(inlier), float(field.lo[0]), float(field.lo[1]),
+                   float(field.res), np.ascontiguousarray(pts[_spread(len(pts))], dtype=float),
+                   np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(th, dtype=float),
+                   cid.ravel().astype(np.int64), len(cells), int(k), counts)
+    done = np.nonzero(counts >= 0)[0]
+    order = done[np.argsort(-counts[done], kind="stable")]
+    return _first_per_cell(order, cid.ravel().astype(np.int64), len(cells), int(k))
+
+
+@lru_cache(maxsize=64)
+def _spread(n: int) -> np.ndarray:
+    """0 .. n-1 in bit-reversed order (0, n/2, n/4, 3n/4, ...): scan points read in this
+    order spread over the scan from the first reads, so a bad pose's misses show early
+    (a count that stops once it cannot reach a bar stops sooner)."""
+    rev = [int(f"{i:032b}"[::-1], 2) for i in range(n)]
+    out = np.argsort(np.array(rev, np.int64), kind="stable")
+    out.flags.writeable = False     # shared by every caller (cached)
+    return out
+
+
+@kernel
+def _pruned_counts(bits, lo0, lo1, res, pts, T, th, cid, n_cells, k, out):
+    """:func:`_best_distinct`'s counts: each candidate's inlier count (the packed bits, as
+    :func:`_score_kernel` reads them), or -1 once it cannot beat the count that k distinct
+    cells already hold.  That bar only rises: the cells' best counts so far are kept in a
+    histogram, and the bar is the highest count that k of them reach."""
+    ny = bits.shape[0]
+    nx = bits.shape[1] * 8
+    n = pts.shape[0]
+    best = np.full(n_cells, -1, np.int64)
+    hist = np.zeros(n + 1, np.int64)      # cells by their best count
+    bar = 0
+    for h in range(T.shape[0]):
+        c, s = np.cos(th[h]), np.sin(th[h])
+        acc = 0
+        pruned = False
+        for j in range(n):
+            if acc + n - j <= bar:
+                pruned = True
+                break
+            qx, qy = _cell_of(c, s, pts[j, 0], pts[j, 1], T[h, 0], T[h, 1], lo0, lo1, res)
+            if qx >= 0 and qy >= 0 and qx < nx and qy < ny:
+                ix = int(qx)
+                acc += (bits[int(qy), ix >> 3] >> (ix & 7)) & 1
+        if pruned:
+            out[h] = -1
+            continue
+        out[h] = acc
+        g = cid[h]
+        if acc > best[g]:
+            if best[g] >= 0:
+                hist[best[g]] -= 1
+            hist[acc] += 1
+            best[g] = acc
+            total = 0
+            for v in range(n, bar - 1, -1):
+                total += hist[v]
+                if total >= k:
+                    bar = v
+                    break
+
+
+@kernel
+def _first_per_cell(order, cid, n_cells, k):
+    """The first ``k`` of ``order`` whose cells (``cid``) come up for the first time."""
+    seen = np.zeros(n_cells, np.bool_)
+    out = np.empty(min(k, order.size), np.int64)
+    m = 0
+    for i in order:
+        if m == out.size:
+            break
+        if not seen[cid[i]]:
+            seen[cid[i]] = True
+            out[m] = i
+            m += 1
+    return out[:m]
 
 
 def _icp(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
@@ -624,13 +723,14 @@ def _fit(field: DistanceField, pts: np.ndarray, poses: np.ndarray, inlier: float
 
 
 def _verify_points(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,
-                   coarse: np.ndarray, P: RelocParams) -> list[Hypothesis]:
+                   coarse_pts: np.ndarray, P: RelocParams) -> list[Hypothesis]:
     """Point-based verification of the coarse candidates (all vectorised over hypotheses):
-    the best distinct ones are pulled in by point-to-line ICP on a subsample and re-ranked
-    by their soft fit; the best few are refined on all points and ranked by the fit less
-    the free-space evidence (beams through mapped walls)."""
-    order = np.argsort(-coarse, kind="stable")
-    sel = _distinct(T, th, order, 0.3, np.deg2rad(3.0), P.icp_candidates)
+    the best distinct ones by their inlier fraction at ``coarse_dist`` (of ``coarse_pts``)
+    are pulled in by point-to-line ICP on a subsample and re-ranked by their soft fit; the
+    best few are refined on all points and ranked by the fit less the free-space evidence
+    (beams through mapped walls)."""
+    sel = _best_distinct(field, coarse_pts, T, th, P.coarse_dist, 0.3, np.deg2rad(3.0),
+                         P.icp_candidates)
     sub = pts
     if len(sub) > P.icp_points:
         sub = sub[np.linspace(0, len(sub) - 1, P.icp_points).astype(int)]
@@ -678,9 +778,8 @@ def _fallback_sweep(field: DistanceField, pts: np.ndarray, P: RelocParams,
     Q = replace(P, sweep_cells=P.fallback_cells, sweep_grid=P.fallback_grid,
                 sweep_points=P.fallback_points)
     # ties of the wide count (the bound) go to the cell whose own pose fits more points
-    T, th = _sweep(field, pts, rots, Q, reach, stats, tight=P.coarse_dist, near=near,
-                   turn_slack=np.deg2rad(P.fallback_rot_deg))
-    return T, th, _score(field, pts, T, th, P.coarse_dist)
+    return _sweep(field, pts, rots, Q, reach, stats, tight=P.coarse_dist, near=near,
+                  turn_slack=np.deg2rad(P.fallback_rot_deg))
 
 
 def _crossings(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
@@ -952,80 +1051,104 @@ def _coarse_to_fine(field: DistanceField, stack: np.ndarray, thr: float,
         bw[:h, :w] = ok
         bound *= bw.reshape(hc, f, wc, f).any(axis=(1, 3))
     out = np.zeros((3, R, k), np.int64)
+    sp = _spread(oy.shape[1])      # the order the points are read in: counts do not change
+    oy, ox = oy[:, sp], ox[:, sp]
     _branch_and_bound(bound.astype(np.int32), stack, (oy % step) * step + ox % step,
                       oy // step + y0, ox // step + x0, ok, f, k, _TIE_NOISE,
-                      y0, x0, out)
+                      y0, x0, 1 if tight is None else 17, out)
     return out[0].astype(np.int32), out[1], out[2]
 
 
 @kernel
-def _branch_and_bound(bound, stack, phase, qy, qx, ok, f, k, noise, y0, x0, out):
+def _branch_and_bound(bound, stack, phase, qy, qx, ok, f, k, noise, y0, x0, most, out):
     """Per rotation r: the coarse cells bucketed by their bound (``bound[r]``), counted
     position by position from the highest bound down (:func:`_coarse_to_fine`), while the
     bound still reaches the k-th best count so far; then the k best positions by count and
     tie byte (``noise``, as :func:`_tie_noise`) into ``out`` (counts, rows, columns: (3, R,
-    k)), the last one repeated where fewer than k positions were counted."""
+    k)), the last one repeated where fewer than k positions were counted.  ``most``: the
+    most one point adds to a count (1, or 17 with the tight count in the byte).  A
+    position's count stops once it cannot reach the k-th best so far, which only rises, so
+    the answer is that of counting every position to the end."""
     R, hc, wc = bound.shape
     h, w = ok.shape
     n_pts = phase.shape[1]
+    hist = np.zeros(n_pts * most + 2, np.int64)   # cells per bound (a bound <= n_pts * most)
+    order = np.empty(hc * wc, np.int64)
     for r in range(R):
         b = bound[r].ravel()
-        top = 0
-        for c in range(b.size):
-            top = max(top, b[c])
-        hist = np.zeros(top + 2, np.int64)
+        hist[:] = 0
         for c in range(b.size):
             hist[b[c]] += 1
-        start = np.zeros(top + 2, np.int64)     # cells by descending bound: bucket offsets
-        for v in range(top - 1, -1, -1):
-            start[v] = start[v + 1] + hist[v + 1]
-        fill = start.copy()
-        order = np.empty(b.size, np.int64)
-        for c in range(b.size):
-            order[fill[b[c]]] = c
-            fill[b[c]] += 1
+        top = hist.size - 1
+        while top > 0 and hist[top] == 0:
+            top -= 1
         seen = np.zeros(top + 1, np.int64)      # counted positions per count
         cap = 1024
         cnt = np.empty(cap, np.int64)
         py = np.empty(cap, np.int64)
         px = np.empty(cap, np.int64)
         m = 0
-        kth = 0
+        kth = 0        # the k-th best count so far (0 until k positions are counted)
+        above = 0      # counted positions at kth or more
         level = top
         while level >= max(kth, 1):
-            for t in range(start[level], start[level] + hist[level]):
-                cy, cx = divmod(order[t], wc)
-                for dy in range(f):
-                    gy = cy * f + dy
-                    if gy >= h:
-                        break
-                    for dx in range(f):
-                        gx = cx * f + dx
-                        if gx >= w:
-                            break
-                        if not ok[gy, gx]:
-                            continue
-                        acc = 0
-                        for j in range(n_pts):
-                            acc += stack[phase[r, j], qy[r, j] + gy, qx[r, j] + gx]
-                        if m == cap:
-                            cap *= 2
-                            cnt2, py2, px2 = np.empty(cap, np.int64), np.empty(
-                                cap, np.int64), np.empty(cap, np.int64)
-                            cnt2[:m], py2[:m], px2[:m] = cnt[:m], py[:m], px[:m]
-                            cnt, py, px = cnt2, py2, px2
-                        cnt[m], py[m], px[m] = acc, gy, gx
-                        m += 1
-                        seen[acc] += 1
-            # the k-th best count so far: a cell whose bound is below it cannot change the
-            # k best (a bound equal to it can: ties go by the tie byte)
-            total = 0
-            for v in range(top, -1, -1):
-                total += seen[v]
-                if total >= k:
-                    kth = v
+            # the cells of the next few levels down, by descending bound, ascending index
+            # within one: a pass over all cells per band of levels (a few thousand cells), not
+            # a sort of all of them (kth is usually reached in the first band)
+            lo, n_band = level, hist[level]
+            while lo > max(kth, 1) and n_band < 4096:
+                lo -= 1
+                n_band += hist[lo]
+            fill = np.zeros(level + 2, np.int64)
+            for v in range(level - 1, lo - 1, -1):
+                fill[v] = fill[v + 1] + hist[v + 1]
+            start = fill.copy()
+            for c in range(b.size):
+                v = b[c]
+                if v >= lo and v <= level:
+                    order[fill[v]] = c
+                    fill[v] += 1
+            for lev in range(level, lo - 1, -1):
+                # a cell whose bound is below kth cannot change the k best (a bound equal
+                # to it can: ties go by the tie byte)
+                if lev < max(kth, 1):
                     break
-            level -= 1
+                for t in range(start[lev], start[lev] + hist[lev]):
+                    cy, cx = divmod(order[t], wc)
+                    for dy in range(f):
+                        gy = cy * f + dy
+                        if gy >= h:
+                            break
+                        for dx in range(f):
+                            gx = cx * f + dx
+                            if gx >= w:
+                                break
+                            if not ok[gy, gx]:
+                                continue
+                            # a position that can no longer reach kth is not among the k
+                            # best (kth only rises): its count stops there, not kept
+                            acc = 0
+                            for j in range(n_pts):
+                                if acc + (n_pts - j) * most < kth:
+                                    acc = -1
+                                    break
+                                acc += stack[phase[r, j], qy[r, j] + gy, qx[r, j] + gx]
+                            if acc < kth:
+                                continue
+                            if m == cap:
+                                cap *= 2
+                                cnt2, py2, px2 = np.empty(cap, np.int64), np.empty(
+                                    cap, np.int64), np.empty(cap, np.int64)
+                                cnt2[:m], py2[:m], px2[:m] = cnt[:m], py[:m], px[:m]
+                                cnt, py, px = cnt2, py2, px2
+                            cnt[m], py[m], px[m] = acc, gy, gx
+                            m += 1
+                            seen[acc] += 1
+                            above += 1
+                            while kth < top and above - seen[kth] >= k:
+                                above -= seen[kth]
+                                kth += 1
+            level = lo - 1
         key = np.full(m, -1, np.int64)
         for i in range(m):
             if cnt[i] >= kth:

@@ -14,8 +14,10 @@ from cgamap.mapping.relocalize import (
     DistanceField,
     Hypothesis,
     RelocParams,
+    _best_distinct,
     _coarse_to_fine,
     _crossings,
+    _distinct,
     _fallback_sweep,
     _icp,
     _ranked,
@@ -202,7 +204,7 @@ def test_fallback_reads_the_free_space_band_not_the_map_area():
     grid, pos = {}, {}
     for k, f in fields.items():
         counts: dict = {}
-        T, th, _ = _fallback_sweep(f, seg.points, P, reach, counts)
+        T, th = _fallback_sweep(f, seg.points, P, reach, counts)
         assert counts["rotations"] == round(360 / P.fallback_rot_deg)
         assert len(T) == counts["rotations"] * P.fallback_cells
         grid[k], pos[k] = int(np.prod(f.grid_shape(step))), counts["positions"]
@@ -346,6 +348,32 @@ def test_plain_count_on_the_packed_bits_is_the_distance_fields():
         assert np.array_equal(got, want) and 0.0 < want.mean() < 0.5
 
 
+@pytest.mark.parametrize("k", [1, 20, 120, 5000])
+def test_best_distinct_candidates_without_counting_every_one(k):
+    # the k best candidates one per cell, counts stopped early where they cannot reach the
+    # bar, are those of counting every candidate and ranking them (ties by index): around
+    # the true pose (near-duplicates in one cell, equal counts), elsewhere and off the map
+    m, walls = _rooms_map()
+    field = DistanceField(m, 0.05)
+    p = np.array([20.7, 11.6, 0.4])
+    seg = segments_from_scan(scan(world(walls), p, n=360, fov=2 * np.pi, sigma=0.005, seed=3))
+    rng = np.random.default_rng(5)
+    near = p + rng.normal(0, [0.1, 0.1, 0.03], (3000, 3))
+    near[::3] = np.round(near[::3] / 0.05) * 0.05        # exact repeats: tied counts
+    wide = np.column_stack([rng.uniform(field.lo - 3, field.lo + field.size * field.res + 3,
+                                        (6000, 2)), rng.uniform(-np.pi, np.pi, 6000)])
+    cand = rng.permutation(np.concatenate([near, wide]))
+    T, th = cand[:, :2], cand[:, 2]
+    for inlier, n in [(0.2, 40), (0.12, 40), (0.2, 6)]:     # 6 points: many equal counts
+        pts = seg.points[np.linspace(0, len(seg.points) - 1, n).astype(int)]
+        want = _distinct(T, th, np.argsort(-_score(field, pts, T, th, inlier), kind="stable"),
+                         0.3, np.radians(3.0), k)
+        got = _best_distinct(field, pts, T, th, inlier, 0.3, np.radians(3.0), k)
+        assert np.array_equal(got, want) and len(got) == min(k, len(
+            np.unique(np.floor(np.column_stack([T / 0.3, np.mod(th, 2 * np.pi) / np.radians(
+                3.0)])), axis=0)))
+
+
 def test_a_hint_keeps_the_sweeps_to_its_neighbourhood():
     # 24 rooms alike (ROOM repeated 9 m apart) and a cluttered scan (its one segment is not
     # in the map, so only the sweeps can place it): over the whole map its pose is one of 24
@@ -363,7 +391,7 @@ def test_a_hint_keeps_the_sweeps_to_its_neighbourhood():
     T, th = _sweep(field, seg.points, rots, P, near=hint)
     assert len(T) and np.all(np.abs(T - hint[0][:2]) <= 2.0 + P.sweep_grid + 1e-9)
     reach = _reach(seg.points, P, 0.05)
-    T, th, _ = _fallback_sweep(field, seg.points, P, reach, near=hint)
+    T, th = _fallback_sweep(field, seg.points, P, reach, near=hint)
     assert len(T) and np.all(np.abs(wrap(th - hint[0][2])) < 0.52 + np.radians(3.0) + 1e-9)
     r = relocalize(m, seg, field, P, near=hint)
     assert r.found and _pose_err(r.pose, p)[0] < 0.05 and _pose_err(r.pose, p)[1] < 0.5
