@@ -68,12 +68,13 @@ def warm_up() -> float:
         DistanceField,
         _best_distinct,
         _branch_and_bound,
-        _pair_translations,
+        _line_candidates,
         _score,
     )
     one = np.ones((1, 2))
-    _pair_translations(one, one, *(np.ones(1),) * 2, one, *(np.ones(1),) * 2, one,
-                       *(np.ones(1),) * 4, 1.0, 1.0)
+    _line_candidates(one, 2 * one, one, np.ones(1), np.ones((1, 1), bool), np.zeros((1, 1)),
+                     np.ones((1, 1)), one, 2 * one, np.ones(1), np.ones(1), np.ones(1), 1.0,
+                     0.3, 0.5, 1)
     field = DistanceField(lmap, 0.05)
     for soft in (False, True):
         _score(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)

@@ -387,6 +387,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     len_l = np.linalg.norm(sb - sa, axis=-1)
     len_g = lmap.length
     n_g, c_g, phi_g = _line_params(lmap.a, lmap.b)
+    ga, gb = (np.ascontiguousarray(v, dtype=float) for v in (lmap.a, lmap.b))
     _, c_l0, phi_l0 = _line_params(sa, sb)
     rots = _rotation_hypotheses(phi_g, len_g, phi_l0, len_l, P)
     pts = seg.points
@@ -399,7 +400,7 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
     gshape = np.ceil(span / P.grid).astype(int) + 1
     sig = np.array([1.0, -1.0])  # a peak's rotation and its twin + pi: the twin turns the
     # scan's points and normals by pi (same lines, same pairing, opposite normal signs), so
-    # both come out of one pass over the line pairs
+    # both share the pairing, residuals and signs computed once
     for th0 in rots[0::2]:
         if near is not None and min(abs(_wrap(th0 + t * np.pi - near[0][2])) for t in (0, 1)
                                     ) > near[2] + tol:
@@ -414,55 +415,14 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         pair = (np.abs(delta) < tol) & (len_g[:, None] > P.map_share * len_l[None, :] - 0.3)
         # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
         sgn = np.sign(n_g @ n_l.T)
-        Ts, Ds = ([], []), ([], [])
-        k = len(ra)
-        # per scan line: the map segments it may lie on, and (per sign) where along each the
-        # translation may fall for the scan segment to lie on the map segment, not only on
-        # its line; (2, n) right-hand sides: the rotation and its twin
-        on: dict = {}
-        for i in range(k):
-            g = np.nonzero(pair[:, i])[0]
-            if len(g):
-                on[i] = (g, c_g[g][None] - sig[:, None] * sgn[g, i][None] * c_l[i],
-                         [_on_segment(lmap.a[g], lmap.b[g], sig[t] * ra[i], sig[t] * rb[i],
-                                      P.overlap_slack) for t in (0, 1)])
-        for i1 in range(k):          # loops over the few scan lines, not over points
-            for i2 in range(i1 + 1, k):
-                ang = np.abs(_wrap(2 * (phi_l[i1] - phi_l[i2]))) / 2
-                if ang < np.deg2rad(P.min_pair_angle_deg) or i1 not in on or i2 not in on:
-                    continue
-                (g1, d1, ov1), (g2, d2, ov2) = on[i1], on[i2]
-                for t in (0, 1):
-                    T, D = _pair_translations(n_g[g1], n_g[g2], d1[t], d2[t], *ov1[t],
-                                              *ov2[t], delta[g1, i1], delta[g2, i2],
-                                              len_l[i1], len_l[i2])
-                    Ts[t].append(T)
-                    Ds[t].append(D)
         for t in (0, 1):
             th = th0 + t * np.pi
-            # position along parallel lines (a corridor) from end points: align each end of
-            # the longest scan lines with each end of the map segments they may lie on.
-            # Always tried: a short cross piece that would fix it is often missing.
-            Tf, Df = [], []
-            for i1 in range(min(n_end, k)):
-                g = np.nonzero(pair[:, i1])[0]
-                if not len(g):
-                    continue
-                d = c_g[g] - sig[t] * sgn[g, i1] * c_l[i1]
-                u = np.column_stack([-n_g[g, 1], n_g[g, 0]])
-                ends_g = [np.sum(lmap.a[g] * u, -1), np.sum(lmap.b[g] * u, -1)]
-                ends_l = [sig[t] * (u @ ra[i1]), sig[t] * (u @ rb[i1])]
-                for eg in ends_g:
-                    for el in ends_l:
-                        Tf.append(d[:, None] * n_g[g] + (eg - el)[:, None] * u)
-                        Df.append(delta[g, i1])
-            if Tf:
-                cand_T.append(np.concatenate(Tf))
-                cand_R.append(th + np.concatenate(Df))
-            if not Ts[t]:
-                continue
-            T = np.concatenate(Ts[t])
-            D = np.concatenate(Ds[t])
+            T, D, Tf, Df = _line_candidates(
+                ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len_l,
+                sig[t], P.overlap_slack, np.deg2rad(P.min_pair_angle_deg), n_end)
+            if len(Tf):
+                cand_T.append(Tf)
+                cand_R.append(th + Df)
             cell = np.floor((T - lo) / P.grid).astype(int)
             inside = np.all((cell >= 0) & (cell < gshape), axis=-1)
             T, D, cell = T[inside], D[inside], cell[inside]
@@ -1183,24 +1143,14 @@ def _polish(field: DistanceField, pts: np.ndarray, pose: np.ndarray, inlier: flo
     return best
 
 
-def _on_segment(ga: np.ndarray, gb: np.ndarray, la: np.ndarray, lb: np.ndarray,
-                slack: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where scan segment la-lb, moved by T, overlaps each map segment ga-gb along its line
-    with a gap of at most ``slack``: u . T in the open interval (lo, hi), u the map
-    segments' unit directions (k, 2).  Returns u, lo, hi."""
-    d = gb - ga
-    L = np.linalg.norm(d, axis=-1)
-    u = d / np.maximum(L, 1e-9)[:, None]
-    t1 = np.einsum("gd,gd->g", la[None] - ga, u)
-    t2 = np.einsum("gd,gd->g", lb[None] - ga, u)
-    return u, -slack - np.maximum(t1, t2), L + slack - np.minimum(t1, t2)
-
-
 @kernel
 def _pair_kernel(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2, w1, w2, out_T,
                  out_D):
-    """:func:`_pair_translations`' loop: writes the pairs that fit into out_T, out_D as far
-    as they have room, and returns how many fit.
+    """The translations (k, 2) putting two scan lines on every pair of map segments (g1, g2)
+    they fit at once (Cramer's rule on the lines ``A . T = d``, then both overlap intervals
+    (lo, hi) along the segments' directions u), in row-major (g1, g2) order, and each pair's
+    rotation residual, the two lines' weighted by their lengths ``w1``, ``w2``: written into
+    out_T, out_D as far as they have room; returns how many fit.
 
     A map segment admits the translations on a piece of its line, d n + s u for s in
     (lo, hi): a pair can fit only where the two pieces' bounding boxes meet.  The second
@@ -1259,22 +1209,93 @@ def _pair_kernel(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2, w1,
     return n
 
 
-def _pair_translations(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2,
-                       w1: float, w2: float) -> tuple[np.ndarray, np.ndarray]:
-    """The translations (k, 2) putting two scan lines on every pair of map segments (g1, g2)
-    they fit at once (Cramer's rule on the lines ``A . T = d``, then both overlap intervals
-    :func:`_on_segment`), in row-major (g1, g2) order, and each pair's rotation residual,
-    the two lines' weighted by their lengths ``w1``, ``w2``.  Compiled: in numpy the (n1, n2) grids
-    of this step were most of a trial's time on a large map (3 680 segments: 96 of 156 ms)."""
-    args = [np.ascontiguousarray(v, dtype=float) for v in
-            (A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2)]
-    room = min(len(A1) * len(A2), 4096)  # a few hundred fit as a rule
-    T, D = np.empty((room, 2)), np.empty(room)
-    n = _pair_kernel(*args, float(w1), float(w2), T, D)
-    if n > room:  # more than that: once more into buffers of the size found
-        T, D = np.empty((n, 2)), np.empty(n)
-        _pair_kernel(*args, float(w1), float(w2), T, D)
-    return T[:n], D[:n]
+@kernel
+def _line_candidates(ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len_l, s,
+                     slack, min_ang, n_end):
+    """One rotation hypothesis's translation candidates from the scan's lines (the scan's
+    end points ``ra``, ``rb`` turned by it; ``s`` = -1 for its twin + pi, which turns the
+    points and normals by pi).  Each scan line i may lie on the map segments g with
+    ``pair[g, i]``; on one of them the translation satisfies ``n_g . T = c_g - s sgn c_l``
+    and, for the scan segment to lie on the map segment and not only on its line, falls in
+    an interval along it.  Returns (T, D): every translation that puts
+    two scan lines at least ``min_ang`` apart on two map segments at once
+    (:func:`_pair_kernel`, pairs of scan lines in order), with its rotation residual; and
+    (Tf, Df): the corridor candidates of the first ``n_end`` scan lines, each end of the
+    scan line aligned with each end of every map segment it may lie on (a position along
+    parallel walls, which a short cross piece would fix but is often missing)."""
+    G, k = pair.shape
+    off = np.zeros(k + 1, np.int64)         # per scan line: its map segments, flat
+    for i in range(k):
+        c = 0
+        for g in range(G):
+            if pair[g, i]:
+                c += 1
+        off[i + 1] = off[i] + c
+    E = off[k]
+    gi = np.empty(E, np.int64)
+    A, u = np.empty((E, 2)), np.empty((E, 2))
+    d, lo, hi, dl = np.empty(E), np.empty(E), np.empty(E), np.empty(E)
+    for i in range(k):
+        e = off[i]
+        lax, lay, lbx, lby = s * ra[i, 0], s * ra[i, 1], s * rb[i, 0], s * rb[i, 1]
+        for g in range(G):
+            if not pair[g, i]:
+                continue
+            gi[e] = g
+            A[e, 0], A[e, 1] = n_g[g, 0], n_g[g, 1]
+            d[e] = c_g[g] - s * sgn[g, i] * c_l[i]
+            dl[e] = delta[g, i]
+            # where along the map segment the translation may fall: u . T in (lo, hi), the
+            # scan segment then overlapping it with a gap of at most ``slack``
+            dx, dy = gb[g, 0] - ga[g, 0], gb[g, 1] - ga[g, 1]
+            L = np.sqrt(dx * dx + dy * dy)
+            ux, uy = dx / max(L, 1e-9), dy / max(L, 1e-9)
+            u[e, 0], u[e, 1] = ux, uy
+            t1 = (lax - ga[g, 0]) * ux + (lay - ga[g, 1]) * uy
+            t2 = (lbx - ga[g, 0]) * ux + (lby - ga[g, 1]) * uy
+            lo[e] = -slack - max(t1, t2)
+            hi[e] = L + slack - min(t1, t2)
+            e += 1
+    cap = 1024
+    T, D = np.empty((cap, 2)), np.empty(cap)
+    n = 0
+    for i1 in range(k):
+        for i2 in range(i1 + 1, k):
+            ang = abs((2.0 * (phi_l[i1] - phi_l[i2]) + np.pi) % (2.0 * np.pi) - np.pi) / 2
+            a0, a1, b0, b1 = off[i1], off[i1 + 1], off[i2], off[i2 + 1]
+            if ang < min_ang or a0 == a1 or b0 == b1:
+                continue
+            while True:
+                m = _pair_kernel(A[a0:a1], A[b0:b1], d[a0:a1], d[b0:b1], u[a0:a1],
+                                 lo[a0:a1], hi[a0:a1], u[b0:b1], lo[b0:b1], hi[b0:b1],
+                                 dl[a0:a1], dl[b0:b1], len_l[i1], len_l[i2], T[n:], D[n:])
+                if n + m <= cap:
+                    n += m
+                    break
+                cap = max(2 * cap, n + m)    # out of room: grow, solve the pair again
+                T2, D2 = np.empty((cap, 2)), np.empty(cap)
+                T2[:n], D2[:n] = T[:n], D[:n]
+                T, D = T2, D2
+    nf = 0
+    for i1 in range(min(n_end, k)):
+        nf += 4 * (off[i1 + 1] - off[i1])
+    Tf, Df = np.empty((nf, 2)), np.empty(nf)
+    f = 0
+    for i1 in range(min(n_end, k)):
+        for end_g in range(2):
+            for end_l in range(2):
+                px, py = (ra[i1, 0], ra[i1, 1]) if end_l == 0 else (rb[i1, 0], rb[i1, 1])
+                for e in range(off[i1], off[i1 + 1]):
+                    g = gi[e]
+                    vx, vy = -n_g[g, 1], n_g[g, 0]          # along the map segment
+                    q = ga[g] if end_g == 0 else gb[g]
+                    eg = q[0] * vx + q[1] * vy
+                    el = s * (vx * px + vy * py)
+                    Tf[f, 0] = d[e] * n_g[g, 0] + (eg - el) * vx
+                    Tf[f, 1] = d[e] * n_g[g, 1] + (eg - el) * vy
+                    Df[f] = delta[g, i1]
+                    f += 1
+    return T[:n], D[:n], Tf, Df
 
 
 def _score(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.ndarray,

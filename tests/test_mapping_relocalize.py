@@ -158,43 +158,95 @@ def test_along_a_corridor_the_wall_pieces_ends_place_the_scan():
     assert with_ends >= 18 and with_ends > without
 
 
-def test_line_pair_translations_are_every_pair_that_fits():
-    # the compiled solve against the same computation over the whole (n1, n2) grid in numpy,
-    # in the same order (row-major), with more fits than its first buffer holds, and on a
-    # big map of short segments (where the solve reads only the pairs whose boxes meet)
-    from cgamap.mapping.relocalize import _on_segment, _pair_translations
+def _line_candidates_numpy(ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len_l, s,
+                           slack, min_ang, n_end):
+    """The same candidates computed over whole grids in numpy: every (map segment, map
+    segment) pair of every two scan lines solved, then filtered, in row-major order."""
+    from cgamap.mapping.odometry import wrap_angle
+
+    def on_segment(g, la, lb):
+        d = gb[g] - ga[g]
+        L = np.linalg.norm(d, axis=-1)
+        u = d / np.maximum(L, 1e-9)[:, None]
+        t1, t2 = np.sum((la - ga[g]) * u, -1), np.sum((lb - ga[g]) * u, -1)
+        return u, -slack - np.maximum(t1, t2), L + slack - np.minimum(t1, t2)
+
+    k = len(ra)
+    on = {}
+    for i in range(k):
+        g = np.nonzero(pair[:, i])[0]
+        if len(g):
+            on[i] = (g, c_g[g] - s * sgn[g, i] * c_l[i], *on_segment(g, s * ra[i], s * rb[i]))
+    T, D = [np.zeros((0, 2))], [np.zeros(0)]
+    for i1 in range(k):
+        for i2 in range(i1 + 1, k):
+            if (abs(wrap_angle(2 * (phi_l[i1] - phi_l[i2]))) / 2 < min_ang or i1 not in on
+                    or i2 not in on):
+                continue
+            (g1, d1, u1, lo1, hi1), (g2, d2, u2, lo2, hi2) = on[i1], on[i2]
+            A1, A2 = n_g[g1], n_g[g2]
+            det = A1[:, None, 0] * A2[None, :, 1] - A1[:, None, 1] * A2[None, :, 0]
+            ok = np.abs(det) > 0.3
+            det = np.where(ok, det, 1.0)
+            tx = (d1[:, None] * A2[None, :, 1] - A1[:, None, 1] * d2[None, :]) / det
+            ty = (A1[:, None, 0] * d2[None, :] - d1[:, None] * A2[None, :, 0]) / det
+            t1 = tx * u1[:, None, 0] + ty * u1[:, None, 1]
+            t2 = tx * u2[None, :, 0] + ty * u2[None, :, 1]
+            good = (ok & (lo1[:, None] < t1) & (t1 < hi1[:, None]) & (lo2[None] < t2)
+                    & (t2 < hi2[None]))
+            T.append(np.column_stack([tx[good], ty[good]]))
+            w1, w2 = len_l[i1], len_l[i2]
+            D.append(((w1 * delta[g1, i1][:, None] + w2 * delta[g2, i2][None]) / (w1 + w2))[good])
+    F, E = [np.zeros((0, 2))], [np.zeros(0)]
+    for i1 in range(min(n_end, k)):
+        if i1 not in on:
+            continue
+        g, d = on[i1][:2]
+        v = np.column_stack([-n_g[g, 1], n_g[g, 0]])
+        for q in (ga[g], gb[g]):
+            for p in (ra[i1], rb[i1]):
+                F.append(d[:, None] * n_g[g] + (np.sum(q * v, -1) - s * (v @ p))[:, None] * v)
+                E.append(delta[g, i1])
+    return (np.concatenate(T), np.concatenate(D), np.concatenate(F), np.concatenate(E))
+
+
+def test_line_candidates_are_every_pair_that_fits_and_every_end():
+    # the compiled candidates of one rotation hypothesis against the same computation over
+    # whole grids in numpy, in the same order, for both twins: on random maps (long and short
+    # segments), and on a dense one whose pairs overflow the first buffer (sweep and prune,
+    # the buffer's growth)
+    from cgamap.mapping.matching import line_angles, line_normals
+    from cgamap.mapping.odometry import wrap_angle
+    from cgamap.mapping.relocalize import _line_candidates
 
     rng = np.random.default_rng(5)
-    for n1, n2, span, length in ((40, 30, 10.0, 0.0), (150, 120, 1.0, 0.0),
-                                 (400, 300, 50.0, 2.0)):
-        ga, ha = rng.uniform(-span, span, (n1, 2)), rng.uniform(-span, span, (n2, 2))
-        if length:
-            gb = ga + rng.uniform(-length, length, (n1, 2))
-            hb = ha + rng.uniform(-length, length, (n2, 2))
-        else:
-            gb, hb = rng.uniform(-span, span, (n1, 2)), rng.uniform(-span, span, (n2, 2))
-        A1 = np.column_stack([-(gb - ga)[:, 1], (gb - ga)[:, 0]])
-        A1 /= np.linalg.norm(A1, axis=1)[:, None]
-        A2 = np.column_stack([-(hb - ha)[:, 1], (hb - ha)[:, 0]])
-        A2 /= np.linalg.norm(A2, axis=1)[:, None]
-        d1, d2 = np.sum(A1 * ga, 1), np.sum(A2 * ha, 1)
-        la, lb, ma, mb = (rng.uniform(-0.5, 0.5, 2) for _ in range(4))
-        u1, lo1, hi1 = _on_segment(ga, gb, la, lb, 0.3)
-        u2, lo2, hi2 = _on_segment(ha, hb, ma, mb, 0.3)
-        e1, e2 = rng.normal(size=n1), rng.normal(size=n2)
-        T, D = _pair_translations(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, e1, e2, 2.0, 1.0)
-        det = A1[:, None, 0] * A2[None, :, 1] - A1[:, None, 1] * A2[None, :, 0]
-        ok = np.abs(det) > 0.3
-        det = np.where(ok, det, 1.0)
-        tx = (d1[:, None] * A2[None, :, 1] - A1[:, None, 1] * d2[None, :]) / det
-        ty = (A1[:, None, 0] * d2[None, :] - d1[:, None] * A2[None, :, 0]) / det
-        t1 = tx * u1[:, None, 0] + ty * u1[:, None, 1]
-        t2 = tx * u2[None, :, 0] + ty * u2[None, :, 1]
-        good = (ok & (lo1[:, None] < t1) & (t1 < hi1[:, None]) & (lo2[None] < t2)
-                & (t2 < hi2[None]))
-        assert good.sum() >= 10
-        assert np.allclose(T, np.column_stack([tx[good], ty[good]]), rtol=0, atol=1e-12)
-        want_d = (2.0 * e1[:, None] + 1.0 * e2[None, :]) / 3.0
-        assert np.allclose(D, want_d[good], rtol=0, atol=1e-12)
-        if n1 == 150:
-            assert len(T) > 4096  # this case overflowed the first buffer
+    for case in range(4):
+        if case < 3:
+            n, span, length = ((300, 10.0, 0.0), (900, 50.0, 2.0), (400, 5.0, 6.0))[case]
+            ga = rng.uniform(-span, span, (n, 2))
+            gb = (ga + rng.uniform(-length, length, (n, 2)) if length
+                  else rng.uniform(-span, span, (n, 2)))
+            sa = rng.uniform(-4, 4, (6, 2))
+            sb = sa + rng.uniform(-3, 3, (6, 2))
+        else:   # 200 walls along x and 200 along y, a scan of one of each
+            y = rng.uniform(-1, 1, 200)
+            ga = np.concatenate([np.column_stack([y - 5, y]), np.column_stack([y, y - 5])])
+            gb = np.concatenate([np.column_stack([y + 5, y]), np.column_stack([y, y + 5])])
+            sa, sb = np.array([[-1.0, 0.2], [0.3, -1.0]]), np.array([[1.0, 0.2], [0.3, 1.0]])
+        n_g, c_g = line_normals(ga, gb)
+        phi_g, len_g = line_angles(ga, gb), np.linalg.norm(gb - ga, axis=-1)
+        n_l, c_l = line_normals(sa, sb)
+        phi_l, len_l = line_angles(sa, sb), np.linalg.norm(sb - sa, axis=-1)
+        delta = wrap_angle(2 * (phi_g[:, None] - phi_l[None, :])) / 2
+        tol = np.radians(20.0 if case < 3 else 3.0)
+        pair = (np.abs(delta) < tol) & (len_g[:, None] > 0.5 * len_l[None, :] - 0.3)
+        sgn = np.sign(n_g @ n_l.T)
+        for s in (1.0, -1.0):
+            args = (ga, gb, n_g, c_g, pair, delta, sgn, sa, sb, c_l, phi_l, len_l, s, 0.3,
+                    np.radians(30.0), 3)
+            got, want = _line_candidates(*args), _line_candidates_numpy(*args)
+            for a, b in zip(got, want, strict=True):
+                assert a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-9)
+            assert len(got[0]) >= 10 and len(got[2]) >= 10
+            if case == 3:
+                assert len(got[0]) > 1024     # more than the first buffer holds
