@@ -1026,14 +1026,15 @@ def _branch_and_bound(bound, stack, phase, qy, qx, ok, f, k, noise, y0, x0, most
     bound still reaches the k-th best count so far; then the k best positions by count and
     tie byte (``noise``, as :func:`_tie_noise`) into ``out`` (counts, rows, columns: (3, R,
     k)), the last one repeated where fewer than k positions were counted.  ``most``: the
-    most one point adds to a count (1, or 17 with the tight count in the byte).  A
-    position's count stops once it cannot reach the k-th best so far, which only rises, so
-    the answer is that of counting every position to the end."""
+    most one point adds to a count (1, or 17 with the tight count in the byte).  A cell's
+    positions are counted together, and stop once none can reach the k-th best count so
+    far, which only rises, so the answer is that of counting every position to the end."""
     R, hc, wc = bound.shape
     h, w = ok.shape
     n_pts = phase.shape[1]
     hist = np.zeros(n_pts * most + 2, np.int64)   # cells per bound (a bound <= n_pts * most)
     order = np.empty(hc * wc, np.int64)
+    cacc = np.zeros((f, f), np.int64)        # one cell's counts
     for r in range(R):
         b = bound[r].ravel()
         hist[:] = 0
@@ -1075,25 +1076,34 @@ def _branch_and_bound(bound, stack, phase, qy, qx, ok, f, k, noise, y0, x0, most
                     break
                 for t in range(start[lev], start[lev] + hist[lev]):
                     cy, cx = divmod(order[t], wc)
-                    for dy in range(f):
-                        gy = cy * f + dy
-                        if gy >= h:
+                    fy, fx = min(f, h - cy * f), min(f, w - cx * f)
+                    # the cell's positions counted together, point by point: each point
+                    # reads a few adjacent bytes of one row per cell row (cache lines),
+                    # where a position at a time read one byte per point far apart
+                    for dy in range(fy):
+                        for dx in range(fx):
+                            cacc[dy, dx] = 0
+                    hopeless = False
+                    for j in range(n_pts):
+                        best_c = 0
+                        for dy in range(fy):
+                            for dx in range(fx):
+                                best_c = max(best_c, cacc[dy, dx])
+                        if best_c + (n_pts - j) * most < kth:
+                            hopeless = True
                             break
-                        for dx in range(f):
+                        ph, by, bx = phase[r, j], qy[r, j] + cy * f, qx[r, j] + cx * f
+                        for dy in range(fy):
+                            for dx in range(fx):
+                                cacc[dy, dx] += stack[ph, by + dy, bx + dx]
+                    if hopeless:
+                        continue
+                    for dy in range(fy):
+                        gy = cy * f + dy
+                        for dx in range(fx):
                             gx = cx * f + dx
-                            if gx >= w:
-                                break
-                            if not ok[gy, gx]:
-                                continue
-                            # a position that can no longer reach kth is not among the k
-                            # best (kth only rises): its count stops there, not kept
-                            acc = 0
-                            for j in range(n_pts):
-                                if acc + (n_pts - j) * most < kth:
-                                    acc = -1
-                                    break
-                                acc += stack[phase[r, j], qy[r, j] + gy, qx[r, j] + gx]
-                            if acc < kth:
+                            acc = cacc[dy, dx]
+                            if not ok[gy, gx] or acc < kth:
                                 continue
                             if m == cap:
                                 cap *= 2
