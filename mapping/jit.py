@@ -72,9 +72,8 @@ def warm_up() -> float:
         _score,
     )
     one = np.ones((1, 2))
-    _line_candidates(one, 2 * one, one, np.ones(1), np.ones((1, 1), bool), np.zeros((1, 1)),
-                     np.ones((1, 1)), one, 2 * one, np.ones(1), np.ones(1), np.ones(1), 1.0,
-                     0.3, 0.5, 1)
+    _line_candidates(one, 2 * one, one, *(np.ones(1),) * 3, one, 2 * one, one,
+                     *(np.ones(1),) * 3, 1.0, 0.05, 0.5, 0.3, 0.5, 1)
     field = DistanceField(lmap, 0.05)
     for soft in (False, True):
         _score(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)

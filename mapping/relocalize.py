@@ -409,17 +409,11 @@ def relocalize(lmap: LineMap, seg: Segments, field: DistanceField | None = None,
         R = np.array([[c, -s], [s, c]])
         ra, rb = sa @ R.T, sb @ R.T
         n_l, c_l, phi_l = _line_params(ra, rb)
-        # exact rotation residual of every pairing: each candidate gets the rotation its own
-        # two line pairs say (the histogram peak is only good to a bin or so)
-        delta = _wrap(2 * (phi_g[:, None] - phi_l[None, :])) / 2
-        pair = (np.abs(delta) < tol) & (len_g[:, None] > P.map_share * len_l[None, :] - 0.3)
-        # relative sign of the normals; constraint n_g . T = c_g - sgn c_l
-        sgn = np.sign(n_g @ n_l.T)
         for t in (0, 1):
             th = th0 + t * np.pi
             T, D, Tf, Df = _line_candidates(
-                ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len_l,
-                sig[t], P.overlap_slack, np.deg2rad(P.min_pair_angle_deg), n_end)
+                ga, gb, n_g, c_g, phi_g, len_g, ra, rb, n_l, c_l, phi_l, len_l, sig[t], tol,
+                P.map_share, P.overlap_slack, np.deg2rad(P.min_pair_angle_deg), n_end)
             if len(Tf):
                 cand_T.append(Tf)
                 cand_R.append(th + Df)
@@ -1220,41 +1214,45 @@ def _pair_kernel(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2, w1,
 
 
 @kernel
-def _line_candidates(ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len_l, s,
-                     slack, min_ang, n_end):
+def _line_candidates(ga, gb, n_g, c_g, phi_g, len_g, ra, rb, n_l, c_l, phi_l, len_l, s, tol,
+                     map_share, slack, min_ang, n_end):
     """One rotation hypothesis's translation candidates from the scan's lines (the scan's
-    end points ``ra``, ``rb`` turned by it; ``s`` = -1 for its twin + pi, which turns the
-    points and normals by pi).  Each scan line i may lie on the map segments g with
-    ``pair[g, i]``; on one of them the translation satisfies ``n_g . T = c_g - s sgn c_l``
-    and, for the scan segment to lie on the map segment and not only on its line, falls in
-    an interval along it.  Returns (T, D): every translation that puts
+    end points ``ra``, ``rb`` turned by it, their lines' normals, offsets, angles and
+    lengths; ``s`` = -1 for its twin + pi, which turns the points and normals by pi).  Scan
+    line i may lie on map segment g when their angles differ by less than ``tol`` (the
+    residual ``delta``, each candidate's own rotation correction: the histogram peak is only
+    good to a bin or so) and the map segment is at least ``map_share`` of its length (less
+    0.3 m).  On one of them the translation satisfies ``n_g . T = c_g - s sgn c_l`` (sgn:
+    the normals' relative sign) and, for the scan segment to lie on the map segment and not
+    only on its line, falls in an interval along it.  Returns (T, D): every translation that puts
     two scan lines at least ``min_ang`` apart on two map segments at once
     (:func:`_pair_kernel`, pairs of scan lines in order), with its rotation residual; and
     (Tf, Df): the corridor candidates of the first ``n_end`` scan lines, each end of the
     scan line aligned with each end of every map segment it may lie on (a position along
     parallel walls, which a short cross piece would fix but is often missing)."""
-    G, k = pair.shape
+    G, k = len(ga), len(ra)
     off = np.zeros(k + 1, np.int64)         # per scan line: its map segments, flat
+    gi = np.empty(G * k, np.int64)
+    dl = np.empty(G * k)
+    e = 0
     for i in range(k):
-        c = 0
         for g in range(G):
-            if pair[g, i]:
-                c += 1
-        off[i + 1] = off[i] + c
+            dd = ((2 * (phi_g[g] - phi_l[i]) + np.pi) % (2.0 * np.pi) - np.pi) / 2
+            if abs(dd) < tol and len_g[g] > map_share * len_l[i] - 0.3:
+                gi[e], dl[e] = g, dd
+                e += 1
+        off[i + 1] = e
     E = off[k]
-    gi = np.empty(E, np.int64)
     A, u = np.empty((E, 2)), np.empty((E, 2))
-    d, lo, hi, dl = np.empty(E), np.empty(E), np.empty(E), np.empty(E)
+    d, lo, hi = np.empty(E), np.empty(E), np.empty(E)
     for i in range(k):
-        e = off[i]
         lax, lay, lbx, lby = s * ra[i, 0], s * ra[i, 1], s * rb[i, 0], s * rb[i, 1]
-        for g in range(G):
-            if not pair[g, i]:
-                continue
-            gi[e] = g
+        for e in range(off[i], off[i + 1]):
+            g = gi[e]
             A[e, 0], A[e, 1] = n_g[g, 0], n_g[g, 1]
-            d[e] = c_g[g] - s * sgn[g, i] * c_l[i]
-            dl[e] = delta[g, i]
+            dot = n_g[g, 0] * n_l[i, 0] + n_g[g, 1] * n_l[i, 1]
+            sgn = 1.0 if dot > 0 else (-1.0 if dot < 0 else 0.0)
+            d[e] = c_g[g] - s * sgn * c_l[i]
             # where along the map segment the translation may fall: u . T in (lo, hi), the
             # scan segment then overlapping it with a gap of at most ``slack``
             dx, dy = gb[g, 0] - ga[g, 0], gb[g, 1] - ga[g, 1]
@@ -1265,7 +1263,6 @@ def _line_candidates(ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len
             t2 = (lbx - ga[g, 0]) * ux + (lby - ga[g, 1]) * uy
             lo[e] = -slack - max(t1, t2)
             hi[e] = L + slack - min(t1, t2)
-            e += 1
     cap = 1024
     T, D = np.empty((cap, 2)), np.empty(cap)
     n = 0
@@ -1303,7 +1300,7 @@ def _line_candidates(ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len
                     el = s * (vx * px + vy * py)
                     Tf[f, 0] = d[e] * n_g[g, 0] + (eg - el) * vx
                     Tf[f, 1] = d[e] * n_g[g, 1] + (eg - el) * vy
-                    Df[f] = delta[g, i1]
+                    Df[f] = dl[e]
                     f += 1
     return T[:n], D[:n], Tf, Df
 

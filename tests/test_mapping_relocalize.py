@@ -158,11 +158,15 @@ def test_along_a_corridor_the_wall_pieces_ends_place_the_scan():
     assert with_ends >= 18 and with_ends > without
 
 
-def _line_candidates_numpy(ga, gb, n_g, c_g, pair, delta, sgn, ra, rb, c_l, phi_l, len_l, s,
-                           slack, min_ang, n_end):
+def _line_candidates_numpy(ga, gb, n_g, c_g, phi_g, len_g, ra, rb, n_l, c_l, phi_l, len_l, s,
+                           tol, map_share, slack, min_ang, n_end):
     """The same candidates computed over whole grids in numpy: every (map segment, map
     segment) pair of every two scan lines solved, then filtered, in row-major order."""
     from cgamap.mapping.odometry import wrap_angle
+
+    delta = wrap_angle(2 * (phi_g[:, None] - phi_l[None, :])) / 2
+    pair = (np.abs(delta) < tol) & (len_g[:, None] > map_share * len_l[None, :] - 0.3)
+    sgn = np.sign(n_g @ n_l.T)
 
     def on_segment(g, la, lb):
         d = gb[g] - ga[g]
@@ -216,7 +220,6 @@ def test_line_candidates_are_every_pair_that_fits_and_every_end():
     # segments), and on a dense one whose pairs overflow the first buffer (sweep and prune,
     # the buffer's growth)
     from cgamap.mapping.matching import line_angles, line_normals
-    from cgamap.mapping.odometry import wrap_angle
     from cgamap.mapping.relocalize import _line_candidates
 
     rng = np.random.default_rng(5)
@@ -237,13 +240,10 @@ def test_line_candidates_are_every_pair_that_fits_and_every_end():
         phi_g, len_g = line_angles(ga, gb), np.linalg.norm(gb - ga, axis=-1)
         n_l, c_l = line_normals(sa, sb)
         phi_l, len_l = line_angles(sa, sb), np.linalg.norm(sb - sa, axis=-1)
-        delta = wrap_angle(2 * (phi_g[:, None] - phi_l[None, :])) / 2
         tol = np.radians(20.0 if case < 3 else 3.0)
-        pair = (np.abs(delta) < tol) & (len_g[:, None] > 0.5 * len_l[None, :] - 0.3)
-        sgn = np.sign(n_g @ n_l.T)
         for s in (1.0, -1.0):
-            args = (ga, gb, n_g, c_g, pair, delta, sgn, sa, sb, c_l, phi_l, len_l, s, 0.3,
-                    np.radians(30.0), 3)
+            args = (ga, gb, n_g, c_g, phi_g, len_g, sa, sb, n_l, c_l, phi_l, len_l, s, tol,
+                    0.5, 0.3, np.radians(30.0), 3)
             got, want = _line_candidates(*args), _line_candidates_numpy(*args)
             for a, b in zip(got, want, strict=True):
                 assert a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-9)
