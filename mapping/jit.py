@@ -68,6 +68,7 @@ def warm_up() -> float:
         DistanceField,
         _best_distinct,
         _branch_and_bound,
+        _icp,
         _line_candidates,
         _score,
     )
@@ -78,6 +79,7 @@ def warm_up() -> float:
     for soft in (False, True):
         _score(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
     _best_distinct(field, seg.points, np.zeros((2, 2)), np.zeros(2), 0.2, 0.3, 0.05, 1)
+    _icp(field, seg.points, np.zeros((1, 3)), (0.5,))
     # a big map's coarse-to-fine sweep
     idx = np.zeros((1, 1), np.int64)
     _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,

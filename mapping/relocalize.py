@@ -640,31 +640,74 @@ def _icp(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
     iteration's gate; its residual is the distance to the closest point of that segment
     (to the line where the point projects inside the segment, to the end point beyond it,
     so segment ends fix the position along a corridor), with Cauchy weights.  A light
-    damping keeps a direction nothing fixes where it was."""
-    x = np.array(poses, dtype=float, copy=True)
-    px, py = pts[None, :, 0], pts[None, :, 1]
-    damp = np.eye(3) * 0.5
-    for gate in gates:
-        c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
-        rx, ry = c * px - s * py, s * px + c * py
-        gx, gy = rx + x[:, 0, None], ry + x[:, 1, None]
-        _, e, dseg, _, ux, uy, t, L = field.nearest(gx, gy, full=True)
-        # beyond an end the residual points from the end point to the point: along the
-        # segment by the overshoot, across it by e
-        over = np.where(t < 0.0, t, np.where(t > L, t - L, 0.0))
-        beyond = over != 0.0
-        inv = 1.0 / np.maximum(dseg, 1e-9)
-        nx = np.where(beyond, (over * ux - e * uy) * inv, -uy)
-        ny = np.where(beyond, (over * uy + e * ux) * inv, ux)
-        e = np.where(beyond, dseg, e)
-        scale = max(gate / 3.0, 0.02)
-        w = (dseg < gate) / (1.0 + (e / scale) ** 2)
-        J = np.stack([nx, ny, ny * rx - nx * ry], -1)               # (H, N, 3)
-        A = np.einsum("hn,hni,hnj->hij", w, J, J) + damp
-        b = np.einsum("hn,hni,hn->hi", w, J, e)
-        x -= np.linalg.solve(A, b[..., None])[..., 0]
-    x[:, 2] = _wrap(x[:, 2])
+    damping keeps a direction nothing fixes where it was.  Compiled (:func:`_icp_kernel`):
+    in numpy its (poses x points) temporaries were half of a trial on the Intel map."""
+    x = np.array(poses, dtype=float, copy=True).reshape(-1, 3)
+    field.seg_id  # noqa: B018  (builds the nearest-segment grid and its table)
+    _icp_kernel(field.seg_id, field._tab, float(field.lo[0]), float(field.lo[1]),
+                float(field.res), float(field.far), np.ascontiguousarray(pts, dtype=float),
+                np.asarray(gates, dtype=float), x)
     return x
+
+
+@kernel
+def _icp_kernel(seg_id, tab, lo0, lo1, res, far, pts, gates, x):
+    """:func:`_icp` pose by pose, in place on ``x`` (H, 3): per gate, every point's nearest
+    segment (as :meth:`DistanceField.nearest` reads it), its residual and Jacobian into the
+    3 x 3 normal equations, damped by 0.5, solved by their symmetric inverse."""
+    ny, nx = seg_id.shape
+    for h in range(x.shape[0]):
+        for gate in gates:
+            c, s = np.cos(x[h, 2]), np.sin(x[h, 2])
+            scale = max(gate / 3.0, 0.02)
+            a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            b0 = b1 = b2 = 0.0
+            for j in range(pts.shape[0]):
+                rx = c * pts[j, 0] - s * pts[j, 1]
+                ry = s * pts[j, 0] + c * pts[j, 1]
+                gx, gy = rx + x[h, 0], ry + x[h, 1]
+                qx = int(np.floor((gx - lo0) / res + 0.5))
+                qy = int(np.floor((gy - lo1) / res + 0.5))
+                on_grid = qx >= 0 and qy >= 0 and qx < nx and qy < ny
+                sid = seg_id[min(max(qy, 0), ny - 1), min(max(qx, 0), nx - 1)]
+                ux, uy, L = tab[sid, 2], tab[sid, 3], tab[sid, 4]
+                dx, dy = gx - tab[sid, 0], gy - tab[sid, 1]
+                e = ux * dy - uy * dx                   # along the normal (-uy, ux)
+                t = ux * dx + uy * dy
+                over = t if t < 0.0 else (t - L if t > L else 0.0)
+                dseg = np.hypot(e, over) if on_grid else far
+                if not dseg < gate:
+                    continue
+                if over != 0.0:
+                    # beyond an end the residual points from the end point to the point:
+                    # along the segment by the overshoot, across it by e
+                    inv = 1.0 / max(dseg, 1e-9)
+                    n0, n1 = (over * ux - e * uy) * inv, (over * uy + e * ux) * inv
+                    e = dseg
+                else:
+                    n0, n1 = -uy, ux
+                w = 1.0 / (1.0 + (e / scale) ** 2)
+                j2 = n1 * rx - n0 * ry
+                a00 += w * n0 * n0
+                a01 += w * n0 * n1
+                a02 += w * n0 * j2
+                a11 += w * n1 * n1
+                a12 += w * n1 * j2
+                a22 += w * j2 * j2
+                b0 += w * n0 * e
+                b1 += w * n1 * e
+                b2 += w * j2 * e
+            a00 += 0.5
+            a11 += 0.5
+            a22 += 0.5
+            # the symmetric inverse (cofactors): positive definite by the damping
+            i00, i01, i02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+            i11, i12, i22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+            det = a00 * i00 + a01 * i01 + a02 * i02
+            x[h, 0] -= (i00 * b0 + i01 * b1 + i02 * b2) / det
+            x[h, 1] -= (i01 * b0 + i11 * b1 + i12 * b2) / det
+            x[h, 2] -= (i02 * b0 + i12 * b1 + i22 * b2) / det
+        x[h, 2] = (x[h, 2] + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def _fit(field: DistanceField, pts: np.ndarray, poses: np.ndarray, inlier: float):

@@ -83,6 +83,45 @@ def test_icp_pulls_many_starts_onto_the_true_pose():
         assert et < 0.01 and er < 0.2
 
 
+def _icp_numpy(field, pts, poses, gates):
+    """:func:`_icp`'s step in numpy over (poses x points) arrays: the formulation the
+    compiled kernel must agree with."""
+    x = np.array(poses, dtype=float, copy=True)
+    px, py = pts[None, :, 0], pts[None, :, 1]
+    for gate in gates:
+        c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
+        rx, ry = c * px - s * py, s * px + c * py
+        _, e, dseg, _, ux, uy, t, L = field.nearest(rx + x[:, :1], ry + x[:, 1:2], full=True)
+        over = np.where(t < 0.0, t, np.where(t > L, t - L, 0.0))
+        beyond = over != 0.0
+        inv = 1.0 / np.maximum(dseg, 1e-9)
+        nx = np.where(beyond, (over * ux - e * uy) * inv, -uy)
+        ny = np.where(beyond, (over * uy + e * ux) * inv, ux)
+        e = np.where(beyond, dseg, e)
+        w = (dseg < gate) / (1.0 + (e / max(gate / 3.0, 0.02)) ** 2)
+        J = np.stack([nx, ny, ny * rx - nx * ry], -1)
+        A = np.einsum("hn,hni,hnj->hij", w, J, J) + np.eye(3) * 0.5
+        x -= np.linalg.solve(A, np.einsum("hn,hni,hn->hi", w, J, e)[..., None])[..., 0]
+    x[:, 2] = wrap(x[:, 2])
+    return x
+
+
+def test_compiled_icp_is_the_numpy_gauss_newton():
+    # many starts all over a map of rooms (some off the grid, some beyond segment ends):
+    # the compiled passes land where the (poses x points) numpy ones do
+    m, _ = _rooms_map()
+    field = DistanceField(m, 0.05, border=1.0)
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(-6, 6, (48, 2))
+    lo, hi = field.lo - 2, field.lo + field.size * field.res + 2
+    poses = np.column_stack([rng.uniform(lo, hi, (200, 2)), rng.uniform(-np.pi, np.pi, 200)])
+    P = RelocParams()
+    for gates in (P.icp_gates, P.final_gates, (3.0, 1.5)):     # 3 m: beyond the border
+        got, want = _icp(field, pts, poses, gates), _icp_numpy(field, pts, poses, gates)
+        assert np.allclose(got, want, rtol=0, atol=1e-9)
+        assert np.abs(got - poses).max() > 0.05          # the passes moved the poses
+
+
 def test_icp_fixes_the_position_along_a_corridor_by_its_end():
     # a corridor closed at one end: the side walls fix y and theta only; the end wall's
     # points and the side walls' ends fix x
