@@ -66,8 +66,10 @@ def warm_up() -> float:
     # relocalisation must not pay for their compilation)
     from .relocalize import (
         DistanceField,
+        RelocParams,
         _best_distinct,
         _branch_and_bound,
+        _crossings,
         _icp,
         _line_candidates,
         _score,
@@ -80,6 +82,7 @@ def warm_up() -> float:
         _score(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
     _best_distinct(field, seg.points, np.zeros((2, 2)), np.zeros(2), 0.2, 0.3, 0.05, 1)
     _icp(field, seg.points, np.zeros((1, 3)), (0.5,))
+    _crossings(field, seg.points, np.zeros((1, 3)), RelocParams())
     # a big map's coarse-to-fine sweep
     idx = np.zeros((1, 1), np.int64)
     _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,

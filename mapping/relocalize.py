@@ -795,35 +795,54 @@ def _crossings(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
     step = P.crossing_step
     f = np.arange(P.cross_skip, min(float(r.max()), P.cross_range), step)  # (S,)
     u = pts / np.maximum(r, 1e-9)[:, None]
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    ugx = c[:, None] * u[None, :, 0] - s[:, None] * u[None, :, 1]          # (H, B)
-    ugy = s[:, None] * u[None, :, 0] + c[:, None] * u[None, :, 1]
-    ox, oy = poses[:, 0, None, None], poses[:, 1, None, None]
-    sx = ox + ugx[..., None] * f                                          # (H, B, S)
-    sy = oy + ugy[..., None] * f
-    near = field.lookup_xy(sx, sy) < 0.6 * step + 0.5 * field.res
-    near &= f[None, None, :] < (r[None, :, None] - P.cross_margin)
-    hit = np.zeros(near.shape[:2], bool)
-    h, b, k = np.nonzero(near)
-    if len(h):
-        sid, e_s, _, _ = field.nearest(sx[h, b, k], sy[h, b, k])
-        ax, ay = field.a[sid, 0], field.a[sid, 1]
-        nx, ny = -field.u[sid, 1], field.u[sid, 0]
-        ex = ox[h, 0, 0] + ugx[h, b] * r[b]                                 # beam ends
-        ey = oy[h, 0, 0] + ugy[h, b] * r[b]
-        so = nx * (ox[h, 0, 0] - ax) + ny * (oy[h, 0, 0] - ay)
-        se = nx * (ex - ax) + ny * (ey - ay)
-        m = P.cross_margin
-        # where the beam meets the wall's line must lie on the segment (a beam passing
-        # just past a segment's end crosses nothing)
-        lam = so / np.where(so != se, so - se, 1.0)
-        ix = ox[h, 0, 0] - field.a[sid, 0] + lam * (ex - ox[h, 0, 0])
-        iy = oy[h, 0, 0] - field.a[sid, 1] + lam * (ey - oy[h, 0, 0])
-        along = field.u[sid, 0] * ix + field.u[sid, 1] * iy
-        crossed = (np.sign(so) != np.sign(se)) & (np.abs(so) > m) & (np.abs(se) > m) & (
-            along > 0.0) & (along < field.seg_len[sid])
-        hit[h[crossed], b[crossed]] = True
-    return hit.mean(-1)
+    field.seg_id  # noqa: B018  (builds the nearest-segment grid and its table)
+    out = np.empty(len(poses))
+    _crossings_kernel(field.dist, field.seg_id, field._tab, float(field.lo[0]),
+                      float(field.lo[1]), float(field.res), np.ascontiguousarray(u), r, f,
+                      # the field's own precision, as numpy compared it
+                      np.float32(0.6 * step + 0.5 * field.res), float(P.cross_margin),
+                      np.ascontiguousarray(poses, dtype=float), out)
+    return out
+
+
+@kernel
+def _crossings_kernel(dist, seg_id, tab, lo0, lo1, res, u, r, f, near, margin, poses, out):
+    """:func:`_crossings` pose by pose: each beam (unit direction ``u``, range ``r``) is
+    sampled at the distances ``f`` short of its end by ``margin``; at a sample within
+    ``near`` of a wall (the distance field, nearest cell; off the grid: none), the wall is
+    the nearest segment (as :meth:`DistanceField.nearest` reads it), and the beam crosses it
+    when the segment's line separates the laser from the beam's end by ``margin`` on both
+    sides and the beam meets that line on the segment.  ``out``: the crossed fraction."""
+    ny, nx = dist.shape
+    for h in range(poses.shape[0]):
+        ox, oy = poses[h, 0], poses[h, 1]
+        c, s = np.cos(poses[h, 2]), np.sin(poses[h, 2])
+        hits = 0
+        for b in range(u.shape[0]):
+            ugx = c * u[b, 0] - s * u[b, 1]
+            ugy = s * u[b, 0] + c * u[b, 1]
+            ex, ey = ox + ugx * r[b], oy + ugy * r[b]                 # the beam's end
+            for fk in f:
+                if not fk < r[b] - margin:
+                    break
+                sx, sy = ox + ugx * fk, oy + ugy * fk
+                qx = int(np.floor((sx - lo0) / res + 0.5))
+                qy = int(np.floor((sy - lo1) / res + 0.5))
+                if not (qx >= 0 and qy >= 0 and qx < nx and qy < ny) or not dist[qy, qx] < near:
+                    continue
+                sid = seg_id[qy, qx]
+                ax, ay, wx, wy = tab[sid, 0], tab[sid, 1], tab[sid, 2], tab[sid, 3]
+                so = -wy * (ox - ax) + wx * (oy - ay)
+                se = -wy * (ex - ax) + wx * (ey - ay)
+                # where the beam meets the wall's line must lie on the segment (a beam
+                # passing just past a segment's end crosses nothing)
+                lam = so / (so - se if so != se else 1.0)
+                along = wx * (ox - ax + lam * (ex - ox)) + wy * (oy - ay + lam * (ey - oy))
+                if (np.sign(so) != np.sign(se) and abs(so) > margin and abs(se) > margin
+                        and along > 0.0 and along < tab[sid, 4]):
+                    hits += 1
+                    break
+        out[h] = hits / u.shape[0]
 
 
 def _band_windows(field: DistanceField, step: int, reach: float | None,

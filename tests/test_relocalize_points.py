@@ -152,6 +152,51 @@ def test_crossings_count_beams_through_walls_not_grazing_ones():
     assert c[0] == 0.0 and 0.1 < c[1] < 0.9
 
 
+def _crossings_numpy(field, pts, poses, P):
+    """:func:`_crossings` over (poses x beams x samples) arrays in numpy: the formulation
+    the compiled kernel must agree with, beam for beam."""
+    pts = pts[np.linspace(0, len(pts) - 1, P.cross_beams).astype(int)]
+    r = np.linalg.norm(pts, axis=-1)
+    f = np.arange(P.cross_skip, min(float(r.max()), P.cross_range), P.crossing_step)
+    u = pts / r[:, None]
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    ugx = c[:, None] * u[None, :, 0] - s[:, None] * u[None, :, 1]
+    ugy = s[:, None] * u[None, :, 0] + c[:, None] * u[None, :, 1]
+    ox, oy = poses[:, 0, None, None], poses[:, 1, None, None]
+    sx, sy = ox + ugx[..., None] * f, oy + ugy[..., None] * f
+    near = field.lookup_xy(sx, sy) < 0.6 * P.crossing_step + 0.5 * field.res
+    near &= f[None, None, :] < (r[None, :, None] - P.cross_margin)
+    hit = np.zeros(near.shape[:2], bool)
+    h, b, k = np.nonzero(near)
+    sid = field.nearest(sx[h, b, k], sy[h, b, k])[0]
+    ax, ay, wx, wy = field.a[sid, 0], field.a[sid, 1], field.u[sid, 0], field.u[sid, 1]
+    o_x, o_y = ox[h, 0, 0], oy[h, 0, 0]
+    ex, ey = o_x + ugx[h, b] * r[b], o_y + ugy[h, b] * r[b]
+    so, se = -wy * (o_x - ax) + wx * (o_y - ay), -wy * (ex - ax) + wx * (ey - ay)
+    lam = so / np.where(so != se, so - se, 1.0)
+    along = wx * (o_x - ax + lam * (ex - o_x)) + wy * (o_y - ay + lam * (ey - o_y))
+    m = P.cross_margin
+    crossed = (np.sign(so) != np.sign(se)) & (np.abs(so) > m) & (np.abs(se) > m) & (
+        along > 0.0) & (along < field.seg_len[sid])
+    hit[h[crossed], b[crossed]] = True
+    return hit.mean(-1)
+
+
+def test_compiled_crossings_are_the_numpy_count():
+    # poses all over a map of rooms, some off the grid: the same fraction of crossed beams
+    m, walls = _rooms_map()
+    field = DistanceField(m, 0.05)
+    seg = segments_from_scan(scan(world(walls), (20.7, 11.6, 0.4), n=360, fov=2 * np.pi,
+                                  sigma=0.005, seed=2))
+    rng = np.random.default_rng(9)
+    lo, hi = field.lo - 2, field.lo + field.size * field.res + 2
+    poses = np.column_stack([rng.uniform(lo, hi, (300, 2)), rng.uniform(-np.pi, np.pi, 300)])
+    P = RelocParams()
+    got, want = _crossings(field, seg.points, poses, P), _crossings_numpy(field, seg.points,
+                                                                        poses, P)
+    assert np.array_equal(got, want) and 0.05 < np.mean(got > 0) < 0.95
+
+
 def test_ranking_prefers_fit_less_crossings_and_merges_duplicates():
     P = RelocParams()
     a = Hypothesis(np.array([0.0, 0.0, 0.0]), 0.95, 0.90, 0.0)
