@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 
 def _address() -> str | None:
@@ -66,3 +69,30 @@ def watchdog_period() -> float | None:
         return max(int(usec) / 2e6, 0.01)
     except ValueError:
         return None
+
+
+@contextmanager
+def extending(step: float = 20.0) -> Iterator[None]:
+    """While the block runs, ask the manager every ``step`` / 4 seconds for ``step`` more
+    seconds (``EXTEND_TIMEOUT_USEC``, systemd 236 and later; older ones ignore it): the first
+    start after an install or upgrade compiles the mapper's kernels, which takes 30-45 s on a
+    2-core machine and more on a slower one, and must not look like a start that hangs
+    (``TimeoutStartSec``).  A start that really hangs stops asking and times out as before.
+    Not under systemd, nothing is sent."""
+    if _address() is None:
+        yield
+        return
+    done = threading.Event()
+
+    def ask() -> None:
+        while not done.is_set():
+            notify(f"EXTEND_TIMEOUT_USEC={int(step * 1e6)}")
+            done.wait(step / 4)
+
+    t = threading.Thread(target=ask, name="sd-extend-timeout", daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        done.set()
+        t.join()

@@ -100,9 +100,12 @@ class Daemon:
     # -- the run ---------------------------------------------------------------------------
     def run(self) -> int:
         notify.status("compiling the mapper's kernels")
-        log.info("mapper kernels ready in %.1f s", warm_up())  # ~10 s uncached: not on a scan
-        notify.status("loading checkpoint")
-        self._load_checkpoint()
+        # 30-45 s uncached on a 2-core machine (once per install): before the first scan,
+        # with the start-up timeout extended while it lasts
+        with notify.extending():
+            log.info("mapper kernels ready in %.1f s", warm_up())
+            notify.status("loading checkpoint")
+            self._load_checkpoint()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stop_event.set())
         signal.signal(signal.SIGHUP, self._on_hup)

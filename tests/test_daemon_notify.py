@@ -41,3 +41,33 @@ def test_watchdog_period(monkeypatch):
     assert notify.watchdog_period() == 1.0
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid() + 1))
     assert notify.watchdog_period() is None
+
+
+def test_extending_asks_for_more_start_time_while_busy(tmp_path, monkeypatch):
+    import time
+
+    path = tmp_path / "notify"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        s.bind(str(path))
+        s.settimeout(5)
+        monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+        with notify.extending(step=0.2):
+            time.sleep(0.35)
+        s.setblocking(False)
+        got = []
+        while True:
+            try:
+                got.append(s.recv(4096))
+            except BlockingIOError:
+                break
+        # one at the start, then one every 50 ms while the block ran
+        assert len(got) >= 4 and set(got) == {b"EXTEND_TIMEOUT_USEC=200000"}
+        time.sleep(0.15)                              # and none once it is over
+        try:
+            s.recv(4096)
+            raise AssertionError("asked for more time after the block")
+        except BlockingIOError:
+            pass
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    with notify.extending(step=0.2):
+        pass                                        # not under systemd: nothing to do
