@@ -24,10 +24,10 @@ def _fallback_figures(lmap, scans, idx) -> dict:
     calls: list[dict] = []
     orig = R._fallback_sweep
 
-    def counted(f, pts, Q, reach=None, stats=None):
+    def counted(f, pts, Q, reach=None, stats=None, near=None):
         st: dict = {}
         t = time.process_time()
-        out = orig(f, pts, Q, reach, st)
+        out = orig(f, pts, Q, reach, st, near=near)
         st["ms"] = (time.process_time() - t) * 1e3
         st["reach_m"] = reach
         calls.append(st)
