@@ -22,7 +22,7 @@ def _fallback_figures(lmap, scans, idx) -> dict:
     field = R.DistanceField(lmap, P.field_resolution)
     field.seg_id  # noqa: B018  (built once, not part of a trial)
     calls: list[dict] = []
-    orig = R._fallback_sweep
+    orig = R.fallback_sweep
 
     def counted(f, pts, Q, reach=None, stats=None, near=None):
         st: dict = {}
@@ -35,7 +35,7 @@ def _fallback_figures(lmap, scans, idx) -> dict:
 
     segs = [extract_segments(scans[int(i)].ranges, scans[int(i)].angle_min,
                              scans[int(i)].angle_increment) for i in idx]
-    R._fallback_sweep = counted
+    R.fallback_sweep = counted
     try:
         trial_ms, fb_trial = [], []
         for seg in segs:
@@ -45,7 +45,7 @@ def _fallback_figures(lmap, scans, idx) -> dict:
             trial_ms.append((time.process_time() - t) * 1e3)
             fb_trial.append(len(calls) > n0)
     finally:
-        R._fallback_sweep = orig
+        R.fallback_sweep = orig
     trial_ms, fb_trial = np.array(trial_ms), np.array(fb_trial)
     out = {"trials": len(idx), "fallback_trials": int(fb_trial.sum())}
     if calls:
@@ -74,7 +74,7 @@ def _fallback_figures(lmap, scans, idx) -> dict:
                 pts = pts[np.linspace(0, len(pts) - 1, P.verify_points).astype(int)]
             st: dict = {}
             t = time.process_time()
-            orig(big, pts, P, R._reach(seg.points, P, big.res), st)
+            orig(big, pts, P, R.reach_bound(seg.points, P, big.res), st)
             ms_big.append((time.process_time() - t) * 1e3)
             pos_big.append(st["positions"])
         out["grid4x"] = {

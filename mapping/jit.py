@@ -65,30 +65,24 @@ def warm_up() -> float:
                    float(beams[1] - beams[0]))
     # relocalisation's line-pair solve and hypothesis score (a trial or the daemon's first
     # relocalisation must not pay for their compilation)
-    from .relocalize import (
-        DistanceField,
-        RelocParams,
-        _best_distinct,
-        _branch_and_bound,
-        _crossings,
-        _icp,
-        _line_candidates,
-        _score,
-    )
+    from .line_hypotheses import line_candidates
+    from .pose_verify import best_distinct, crossed_fractions, icp_poses, inlier_scores
+    from .relocalize import DistanceField, RelocParams
+    from .sweep import branch_and_bound
     one = np.ones((1, 2))
-    _line_candidates(one, 2 * one, one, *(np.ones(1),) * 3, one, 2 * one, one,
-                     *(np.ones(1),) * 3, 1.0, 0.05, 0.5, 0.3, 0.5, 1)
+    line_candidates(one, 2 * one, one, *(np.ones(1),) * 3, one, 2 * one, one,
+                    *(np.ones(1),) * 3, 1.0, 0.05, 0.5, 0.3, 0.5, 1)
     field = DistanceField(lmap, 0.05)
     for soft in (False, True):
-        _score(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
-    _best_distinct(field, seg.points, np.zeros((2, 2)), np.zeros(2), 0.2, 0.3, 0.05, 1)
-    _icp(field, seg.points, np.zeros((1, 3)), (0.5,))
-    _crossings(field, seg.points, np.zeros((1, 3)), RelocParams())
+        inlier_scores(field, seg.points, np.zeros((1, 2)), np.zeros(1), 0.2, soft)
+    best_distinct(field, seg.points, np.zeros((2, 2)), np.zeros(2), 0.2, 0.3, 0.05, 1)
+    icp_poses(field, seg.points, np.zeros((1, 3)), (0.5,))
+    crossed_fractions(field, seg.points, np.zeros((1, 3)), RelocParams())
     # a big map's coarse-to-fine sweep
     idx = np.zeros((1, 1), np.int64)
-    _branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,
-                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.uint16), 0, 0, 1,
-                      np.zeros((3, 1, 1), np.int64))
+    branch_and_bound(np.ones((1, 1, 1), np.int32), np.ones((1, 2, 2), np.uint8), idx, idx,
+                     idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.uint16), 0, 0, 1,
+                     np.zeros((3, 1, 1), np.int64))
     # the finishing pass's turn from the walls' directions
     from .slam2d import pair_turns
 

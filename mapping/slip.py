@@ -40,9 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .correction import Correction, CorrectionParams, correct_batch
+from .line_hypotheses import rotation_peaks
 from .matching import LineIndex, line_angles, line_normals, near_box
 from .odometry import wrap_angle
-from .relocalize import rotation_peaks
 from .segments import Segments
 
 

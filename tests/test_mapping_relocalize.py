@@ -109,14 +109,14 @@ def test_unrelated_scan_is_not_found(loop_world):
 def test_sweep_proposes_the_true_cell():
     # an L-shaped room: the correlative sweep alone, at the true rotation, has a cell
     # within half a diagonal of the true position among its best
-    from cgamap.mapping.relocalize import _sweep
+    from cgamap.mapping.sweep import correlative_sweep
     w = world([(-4, -2, 4, -2), (4, -2, 4, 0), (4, 0, 0, 0), (0, 0, 0, 3), (0, 3, -4, 3),
                (-4, 3, -4, -2)])
     m = scanned_map(w, [(0.0, 0.0, 0.0), (-2.0, 1.0, 0.0)])
     p = np.array([-1.2, -0.7, 0.4])
     seg = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi))
     P = RelocParams()
-    T, R = _sweep(DistanceField(m, P.field_resolution), seg.points, np.array([p[2]]), P)
+    T, R = correlative_sweep(DistanceField(m, P.field_resolution), seg.points, np.array([p[2]]), P)
     assert len(T) == P.sweep_cells and np.allclose(R, p[2])
     assert np.min(np.hypot(*(T - p[:2]).T)) <= 0.71 * P.sweep_grid + 0.05
 
@@ -219,8 +219,8 @@ def test_line_candidates_are_every_pair_that_fits_and_every_end():
     # whole grids in numpy, in the same order, for both twins: on random maps (long and short
     # segments), and on a dense one whose pairs overflow the first buffer (sweep and prune,
     # the buffer's growth)
+    from cgamap.mapping.line_hypotheses import line_candidates
     from cgamap.mapping.matching import line_angles, line_normals
-    from cgamap.mapping.relocalize import _line_candidates
 
     rng = np.random.default_rng(5)
     for case in range(4):
@@ -244,7 +244,7 @@ def test_line_candidates_are_every_pair_that_fits_and_every_end():
         for s in (1.0, -1.0):
             args = (ga, gb, n_g, c_g, phi_g, len_g, sa, sb, n_l, c_l, phi_l, len_l, s, tol,
                     0.5, 0.3, np.radians(30.0), 3)
-            got, want = _line_candidates(*args), _line_candidates_numpy(*args)
+            got, want = line_candidates(*args), _line_candidates_numpy(*args)
             for a, b in zip(got, want, strict=True):
                 assert a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-9)
             assert len(got[0]) >= 10 and len(got[2]) >= 10

@@ -9,27 +9,31 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from cgamap.mapping.linemap import LineMap
+from cgamap.mapping.pose_verify import (
+    best_distinct,
+    crossed_fractions,
+    distinct_cells,
+    icp_poses,
+    inlier_scores,
+)
 from cgamap.mapping.posegraph import wrap
 from cgamap.mapping.relocalize import (
     DistanceField,
     Hypothesis,
     RelocParams,
-    _best_distinct,
-    _coarse_to_fine,
-    _crossings,
-    _distinct,
-    _fallback_sweep,
-    _icp,
     _ranked,
-    _reach,
-    _score,
-    _sweep,
-    _tie_noise,
-    _top_cells,
-    _window_counts,
     relocalize,
 )
 from cgamap.mapping.segments import Segments, segments_from_scan
+from cgamap.mapping.sweep import (
+    coarse_to_fine,
+    correlative_sweep,
+    fallback_sweep,
+    reach_bound,
+    tie_noise,
+    top_cells,
+    window_counts,
+)
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from synth2d import ROOM, scan, scanned_map, world
@@ -76,7 +80,7 @@ def test_icp_pulls_many_starts_onto_the_true_pose():
     rng = np.random.default_rng(0)
     starts = p + np.column_stack([rng.uniform(-0.25, 0.25, (8, 2)),
                                   rng.uniform(-0.08, 0.08, 8)])
-    out = _icp(f, pts, starts, RelocParams().icp_gates + RelocParams().final_gates)
+    out = icp_poses(f, pts, starts, RelocParams().icp_gates + RelocParams().final_gates)
     assert out.shape == starts.shape
     for q in out:
         et, er = _pose_err(q, p)
@@ -84,7 +88,7 @@ def test_icp_pulls_many_starts_onto_the_true_pose():
 
 
 def _icp_numpy(field, pts, poses, gates):
-    """:func:`_icp`'s step in numpy over (poses x points) arrays: the formulation the
+    """:func:`icp_poses`'s step in numpy over (poses x points) arrays: the formulation the
     compiled kernel must agree with."""
     x = np.array(poses, dtype=float, copy=True)
     px, py = pts[None, :, 0], pts[None, :, 1]
@@ -117,7 +121,7 @@ def test_compiled_icp_is_the_numpy_gauss_newton():
     poses = np.column_stack([rng.uniform(lo, hi, (200, 2)), rng.uniform(-np.pi, np.pi, 200)])
     P = RelocParams()
     for gates in (P.icp_gates, P.final_gates, (3.0, 1.5)):     # 3 m: beyond the border
-        got, want = _icp(field, pts, poses, gates), _icp_numpy(field, pts, poses, gates)
+        got, want = icp_poses(field, pts, poses, gates), _icp_numpy(field, pts, poses, gates)
         assert np.allclose(got, want, rtol=0, atol=1e-9)
         assert np.abs(got - poses).max() > 0.05          # the passes moved the poses
 
@@ -130,8 +134,8 @@ def test_icp_fixes_the_position_along_a_corridor_by_its_end():
     p = np.array([-1.0, 0.1, 0.05])
     pts = segments_from_scan(scan(w, p, n=360, fov=2 * np.pi, max_range=6.0)).points
     P = RelocParams()
-    out = _icp(DistanceField(m, 0.05), pts, (p + [0.3, 0.0, 0.0])[None],
-               P.icp_gates + P.final_gates)
+    out = icp_poses(DistanceField(m, 0.05), pts, (p + [0.3, 0.0, 0.0])[None],
+                    P.icp_gates + P.final_gates)
     assert _pose_err(out[0], p)[0] < 0.02
 
 
@@ -144,16 +148,16 @@ def test_crossings_count_beams_through_walls_not_grazing_ones():
     pts = segments_from_scan(scan(w, p, n=180)).points
     # at the true pose no beam passes through a wall, though beams near the room's
     # corners graze the side walls
-    assert _crossings(f, pts, p[None], P)[0] == 0.0
+    assert crossed_fractions(f, pts, p[None], P)[0] == 0.0
     # moved so the beams that ended on the free-standing wall now end behind it and the
     # others cross nothing: only the shifted beams that pass x = 0 count
     moved = p + [2.0, 0.0, 0.0]
-    c = _crossings(f, pts, np.stack([p, moved]), P)
+    c = crossed_fractions(f, pts, np.stack([p, moved]), P)
     assert c[0] == 0.0 and 0.1 < c[1] < 0.9
 
 
 def _crossings_numpy(field, pts, poses, P):
-    """:func:`_crossings` over (poses x beams x samples) arrays in numpy: the formulation
+    """:func:`crossed_fractions` over (poses x beams x samples) arrays in numpy: the formulation
     the compiled kernel must agree with, beam for beam."""
     pts = pts[np.linspace(0, len(pts) - 1, P.cross_beams).astype(int)]
     r = np.linalg.norm(pts, axis=-1)
@@ -192,8 +196,8 @@ def test_compiled_crossings_are_the_numpy_count():
     lo, hi = field.lo - 2, field.lo + field.size * field.res + 2
     poses = np.column_stack([rng.uniform(lo, hi, (300, 2)), rng.uniform(-np.pi, np.pi, 300)])
     P = RelocParams()
-    got, want = _crossings(field, seg.points, poses, P), _crossings_numpy(field, seg.points,
-                                                                        poses, P)
+    got, want = crossed_fractions(field, seg.points, poses, P), _crossings_numpy(field, seg.points,
+                                                                                 poses, P)
     assert np.array_equal(got, want) and 0.05 < np.mean(got > 0) < 0.95
 
 
@@ -283,12 +287,12 @@ def test_fallback_reads_the_free_space_band_not_the_map_area():
     fields = {"room": DistanceField(room, 0.05), "far": DistanceField(far, 0.05),
               "border": DistanceField(room, 0.05, border=12.0)}
     maps = {"room": room, "far": far, "border": room}
-    reach = _reach(seg.points, P, 0.05)
+    reach = reach_bound(seg.points, P, 0.05)
     step = int(round(P.fallback_grid / 0.05))
     grid, pos = {}, {}
     for k, f in fields.items():
         counts: dict = {}
-        T, th = _fallback_sweep(f, seg.points, P, reach, counts)
+        T, th = fallback_sweep(f, seg.points, P, reach, counts)
         assert counts["rotations"] == round(360 / P.fallback_rot_deg)
         assert len(T) == counts["rotations"] * P.fallback_cells
         grid[k], pos[k] = int(np.prod(f.grid_shape(step))), counts["positions"]
@@ -309,9 +313,9 @@ def test_reach_bounds_the_nearest_wall_of_an_acceptable_pose():
     P = replace(RelocParams(), min_score=0.5, inlier_dist=0.1)
     ang = np.linspace(0, 2, 10)
     pts = np.column_stack([np.cos(ang), np.sin(ang)]) * np.arange(1, 11)[:, None]
-    assert _reach(pts, P, 0.05) == pytest.approx(6.0 + 0.1 + 0.1)
-    assert _reach(pts, replace(P, min_score=1.0), 0.05) == pytest.approx(1.2)
-    assert _reach(pts, replace(P, min_score=0.0), 0.05) == np.inf
+    assert reach_bound(pts, P, 0.05) == pytest.approx(6.0 + 0.1 + 0.1)
+    assert reach_bound(pts, replace(P, min_score=1.0), 0.05) == pytest.approx(1.2)
+    assert reach_bound(pts, replace(P, min_score=0.0), 0.05) == np.inf
 
 
 @settings(max_examples=40, deadline=None)
@@ -319,7 +323,7 @@ def test_reach_bounds_the_nearest_wall_of_an_acceptable_pose():
        st.integers(0, 2**31 - 1))
 def test_top_cells_are_the_best_counts_of_each_rotation(nrot, h, w, k, seed):
     acc = np.random.default_rng(seed).integers(0, 6, (nrot, h, w)).astype(np.uint8)
-    sc, iy, ix = _top_cells(acc, k)
+    sc, iy, ix = top_cells(acc, k)
     kk = min(k, h * w)
     assert sc.shape == iy.shape == ix.shape == (nrot, kk)
     for r in range(nrot):
@@ -387,14 +391,14 @@ def test_coarse_to_fine_sweep_finds_the_best_positions(f, tight):
     band = field.grid_dist(step) <= 4.0
     for window in [(0, 0, ny, nx), (7, 11, ny - 20, nx - 31)]:
         y0, x0, h, w = window
-        acc = _window_counts(stack, oy, ox, step, window).astype(np.int64)
+        acc = window_counts(stack, oy, ox, step, window).astype(np.int64)
         for b in (None, band):
             full = acc * b[y0: y0 + h, x0: x0 + w] if b is not None else acc
-            key = (full << 8) | _tie_noise(np.arange(len(rots))[:, None, None],
-                                           np.arange(h)[None, :, None] + y0,
-                                           np.arange(w)[None, None, :] + x0)
-            sc, iy, ix = _coarse_to_fine(field, stack, 0.38, tight, step, f, oy, ox, window,
-                                         b, k)
+            key = (full << 8) | tie_noise(np.arange(len(rots))[:, None, None],
+                                          np.arange(h)[None, :, None] + y0,
+                                          np.arange(w)[None, None, :] + x0)
+            sc, iy, ix = coarse_to_fine(field, stack, 0.38, tight, step, f, oy, ox, window,
+                                        b, k)
             ri = np.arange(len(rots))[:, None]
             assert np.array_equal(sc, full[ri, iy, ix])           # counts where they say
             best = np.sort(key.reshape(len(rots), -1), axis=1)[:, -k:]
@@ -424,7 +428,7 @@ def test_plain_count_on_the_packed_bits_is_the_distance_fields():
     T = rng.uniform(field.lo - 5, field.lo + field.size * field.res + 5, (500, 2))
     th = rng.uniform(-np.pi, np.pi, 500)
     for inlier in (0.12, 0.2, 0.5):
-        got = _score(field, pts, T, th, inlier)
+        got = inlier_scores(field, pts, T, th, inlier)
         c, s = np.cos(th)[:, None], np.sin(th)[:, None]
         gx = c * pts[:, 0] - s * pts[:, 1] + T[:, :1]
         gy = s * pts[:, 0] + c * pts[:, 1] + T[:, 1:]
@@ -450,9 +454,9 @@ def test_best_distinct_candidates_without_counting_every_one(k):
     T, th = cand[:, :2], cand[:, 2]
     for inlier, n in [(0.2, 40), (0.12, 40), (0.2, 6)]:     # 6 points: many equal counts
         pts = seg.points[np.linspace(0, len(seg.points) - 1, n).astype(int)]
-        want = _distinct(T, th, np.argsort(-_score(field, pts, T, th, inlier), kind="stable"),
-                         0.3, np.radians(3.0), k)
-        got = _best_distinct(field, pts, T, th, inlier, 0.3, np.radians(3.0), k)
+        order = np.argsort(-inlier_scores(field, pts, T, th, inlier), kind="stable")
+        want = distinct_cells(T, th, order, 0.3, np.radians(3.0), k)
+        got = best_distinct(field, pts, T, th, inlier, 0.3, np.radians(3.0), k)
         assert np.array_equal(got, want) and len(got) == min(k, len(
             np.unique(np.floor(np.column_stack([T / 0.3, np.mod(th, 2 * np.pi) / np.radians(
                 3.0)])), axis=0)))
@@ -472,10 +476,10 @@ def test_a_hint_keeps_the_sweeps_to_its_neighbourhood():
     hint = (p + np.array([0.6, -0.5, 0.15]), 2.0, 0.52)
     P = RelocParams()
     rots = np.radians(np.arange(0.0, 360.0, 10.0))
-    T, th = _sweep(field, seg.points, rots, P, near=hint)
+    T, th = correlative_sweep(field, seg.points, rots, P, near=hint)
     assert len(T) and np.all(np.abs(T - hint[0][:2]) <= 2.0 + P.sweep_grid + 1e-9)
-    reach = _reach(seg.points, P, 0.05)
-    T, th = _fallback_sweep(field, seg.points, P, reach, near=hint)
+    reach = reach_bound(seg.points, P, 0.05)
+    T, th = fallback_sweep(field, seg.points, P, reach, near=hint)
     assert len(T) and np.all(np.abs(wrap(th - hint[0][2])) < 0.52 + np.radians(3.0) + 1e-9)
     r = relocalize(m, seg, field, P, near=hint)
     assert r.found and _pose_err(r.pose, p)[0] < 0.05 and _pose_err(r.pose, p)[1] < 0.5
