@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 
+import pytest
 from cgamap.daemon import notify
 
 
@@ -13,16 +15,22 @@ def test_not_under_systemd(monkeypatch):
     assert notify.ready() is False
 
 
-def test_path_socket(tmp_path, monkeypatch):
+@pytest.fixture
+def manager(tmp_path, monkeypatch):
+    """A fake service manager: a datagram socket at a path, named by $NOTIFY_SOCKET."""
     path = tmp_path / "notify"
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
         s.bind(str(path))
         s.settimeout(5)
         monkeypatch.setenv("NOTIFY_SOCKET", str(path))
-        assert notify.ready("mapping")
-        assert s.recv(4096).decode().split("\n") == ["READY=1", "STATUS=mapping"]
-        notify.watchdog()
-        assert s.recv(4096) == b"WATCHDOG=1"
+        yield s
+
+
+def test_path_socket(manager):
+    assert notify.ready("mapping")
+    assert manager.recv(4096).decode().split("\n") == ["READY=1", "STATUS=mapping"]
+    notify.watchdog()
+    assert manager.recv(4096) == b"WATCHDOG=1"
 
 
 def test_abstract_socket(monkeypatch):
@@ -43,31 +51,21 @@ def test_watchdog_period(monkeypatch):
     assert notify.watchdog_period() is None
 
 
-def test_extending_asks_for_more_start_time_while_busy(tmp_path, monkeypatch):
-    import time
-
-    path = tmp_path / "notify"
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
-        s.bind(str(path))
-        s.settimeout(5)
-        monkeypatch.setenv("NOTIFY_SOCKET", str(path))
-        with notify.extending(step=0.2):
-            time.sleep(0.35)
-        s.setblocking(False)
-        got = []
-        while True:
-            try:
-                got.append(s.recv(4096))
-            except BlockingIOError:
-                break
-        # one at the start, then one every 50 ms while the block ran
-        assert len(got) >= 4 and set(got) == {b"EXTEND_TIMEOUT_USEC=200000"}
-        time.sleep(0.15)                              # and none once it is over
+def test_extending_asks_for_more_start_time_while_busy(manager, monkeypatch):
+    with notify.extending(step=0.2):
+        time.sleep(0.35)
+    manager.setblocking(False)
+    got = []
+    while True:
         try:
-            s.recv(4096)
-            raise AssertionError("asked for more time after the block")
+            got.append(manager.recv(4096))
         except BlockingIOError:
-            pass
+            break
+    # one at the start, then one every 50 ms while the block ran
+    assert len(got) >= 4 and set(got) == {b"EXTEND_TIMEOUT_USEC=200000"}
+    time.sleep(0.15)                                  # and none once it is over
+    with pytest.raises(BlockingIOError):
+        manager.recv(4096)
     monkeypatch.delenv("NOTIFY_SOCKET")
     with notify.extending(step=0.2):
         pass                                        # not under systemd: nothing to do
