@@ -35,10 +35,11 @@ def dense_run(step: float = STEP_M, laps: float = LAPS, beams: int = BEAMS):
 def run() -> dict:
     from dataclasses import replace
 
+    from cgamap.mapping.finishing import neighbour_pairs, round_params
     from cgamap.mapping.odometry import add_odometry_noise
     from cgamap.mapping.offline import build_map
     from cgamap.mapping.segments import extract_segments
-    from cgamap.mapping.slam2d import MapperParams, neighbour_pairs, round_params
+    from cgamap.mapping.slam2d import MapperParams
 
     scans, X = dense_run()
     odo = add_odometry_noise(X, "high", 0)

@@ -18,10 +18,11 @@ SEEDS = (0, 1, 2, 3)
 
 def run() -> dict:
     from cgamap.mapping.evaluation import affine_fit, load_relations, relations_error
+    from cgamap.mapping.finishing import NeighbourParams
     from cgamap.mapping.line_adjust import AdjustParams
     from cgamap.mapping.odometry import ODOM_NOISE_PRESETS, add_odometry_noise
     from cgamap.mapping.offline import build_map
-    from cgamap.mapping.slam2d import MapperParams, NeighbourParams
+    from cgamap.mapping.slam2d import MapperParams
     from conftest import data_dir  # bench/run.py puts tests/ on sys.path
 
     if missing():

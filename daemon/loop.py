@@ -114,7 +114,8 @@ class Mapper2D:
     pose re-anchors the mapper: its next scan starts a new chain at the given pose."""
 
     def __init__(self, mount: tuple[float, float, float] | None, params: dict):
-        from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+        from cgamap.mapping.finishing import NeighbourParams
+        from cgamap.mapping.slam2d import Mapper, MapperParams
 
         # a daemon runs for months: the pose graph keeps its newest nodes (params2d.max_nodes);
         # it never finishes: the finishing pass runs on demand (``optimize``), so the mapper's
@@ -627,7 +628,7 @@ class MappingLoop:
                "max_shift_m": round(float(got["max_shift_m"]), 4),
                "ms": round(1000 * (time.perf_counter() - self._optimize_t0), 1)}
         if getattr(job, "calibration", None):
-            from cgamap.mapping.slam2d import calibration_figures
+            from cgamap.mapping.finishing import calibration_figures
             out["odometry_calibration"] = calibration_figures(job.calibration)
         self.counts["optimized"] += 1
         self.last_optimize = out

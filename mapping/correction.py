@@ -39,7 +39,7 @@ class CorrectionParams:
     # beyond the ends of the segment it matched, a point is compared with that segment's line
     # extrapolated, whose direction a segment l long fixes only to about extrapolation / l
     # rad: the point's variance grows with its distance past the end (0: off).  Scan-to-scan
-    # matching needs it (:class:`~cgamap.mapping.slam2d.NeighbourParams`): a wall cut to a
+    # matching needs it (:class:`~cgamap.mapping.finishing.NeighbourParams`): a wall cut to a
     # stub by the other scan's field of view otherwise tilts the pair by a degree
     extrapolation: float = 0.0
     # a segment shorter than this (m) fixes its line's offset as well as one this long: the

@@ -84,7 +84,7 @@ def warm_up() -> float:
                      idx, np.ones((1, 1), bool), 1, 1, np.zeros(1, np.uint16), 0, 0, 1,
                      np.zeros((3, 1, 1), np.int64))
     # the finishing pass's turn from the walls' directions
-    from .slam2d import pair_turns
+    from .finishing import pair_turns
 
     pair_turns(one[None], 2 * one[None], one[None], 2 * one[None], np.zeros(1), 0.1)
     return time.perf_counter() - t0

@@ -354,3 +354,9 @@ def step_calibration(z, info, raw, min_step: float = 0.2, min_steps: int = 20,
         m = np.sqrt(np.maximum(np.einsum("ks,kst,kt->k", r, info, r), 0.0))
         w = np.where(m <= huber, 1.0, huber / np.maximum(m, 1e-12))
     return float(x[0]), float(x[1]), k
+
+
+def move_points(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Points (k, 2) of a frame at ``pose`` (x, y, theta) in the outer frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return p @ np.array([[c, s], [-s, c]]) + pose[:2]

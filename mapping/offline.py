@@ -23,12 +23,13 @@ from .evaluation import (
     rpe,
     wall_squareness,
 )
+from .finishing import calibration_figures
 from .jit import warm_up
 from .linemap import LineMap
 from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
 from .relocalize import DistanceField, RelocParams, relocalize
 from .segments import SegmentParams, extract_segments
-from .slam2d import Mapper, MapperParams, calibration_figures, scan_poses
+from .slam2d import Mapper, MapperParams, scan_poses
 
 
 @dataclass

@@ -160,7 +160,7 @@ def test_scans_are_kept_for_the_kept_nodes_only():
 def test_pairs_stay_linear_when_the_robot_keeps_to_one_room():
     """Months in one room: every node near every other; the daemon's cap keeps the pairs
     (and the pass's time) linear in the nodes."""
-    from cgamap.mapping.slam2d import NeighbourParams, neighbour_pairs
+    from cgamap.mapping.finishing import NeighbourParams, neighbour_pairs
 
     rng = np.random.default_rng(0)
     X = np.column_stack([rng.uniform(0, 1.5, 600), rng.uniform(0, 1.5, 600), np.zeros(600)])
@@ -258,7 +258,7 @@ def test_optimize_over_the_socket_and_the_cli(daemon, monkeypatch, capsys):
     a clear error, not queued; the first's reply carries the figures."""
     from cgamap.daemon import cli
     from cgamap.daemon.server import request
-    from cgamap.mapping.slam2d import FinishJob
+    from cgamap.mapping.finishing import FinishJob
 
     d = daemon
     empty = d.command({"cmd": "optimize"})  # nothing mapped yet: nothing to do, no error
@@ -401,7 +401,7 @@ def test_a_stopped_failed_or_outdated_pass_applies_nothing(kind, fault, tmp_path
     """Both callers drive one pass the same way: a stop requested while the job computes
     (or once it has computed), an exception in the job, or a map replaced meanwhile leaves
     the map as it was and the loop free for the next pass."""
-    from cgamap.mapping.slam2d import FinishJob
+    from cgamap.mapping.finishing import FinishJob
 
     c = Caller(kind, tmp_path)
     original, computed = FinishJob.run, []

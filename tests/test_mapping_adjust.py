@@ -7,11 +7,12 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from cgamap.mapping.finishing import NeighbourParams
 from cgamap.mapping.line_adjust import AdjustParams, Contributions, adjust, associate, observations
 from cgamap.mapping.linemap import LineMap, MapParams
 from cgamap.mapping.odometry import relative
 from cgamap.mapping.posegraph import PoseGraph
-from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+from cgamap.mapping.slam2d import Mapper, MapperParams
 from synth2d import ROOM, scan, world
 
 # a room with a pillar, so every scan sees walls in two directions

@@ -8,9 +8,10 @@ from dataclasses import replace
 
 import numpy as np
 from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.finishing import NeighbourParams
 from cgamap.mapping.odometry import add_odometry_noise, relative
 from cgamap.mapping.odometry import wrap_angle as wrap
-from cgamap.mapping.slam2d import LoopParams, Mapper, MapperParams, NeighbourParams
+from cgamap.mapping.slam2d import LoopParams, Mapper, MapperParams
 from synth2d import scan
 
 

@@ -321,7 +321,7 @@ def test_line_adjustment_by_conjugate_gradients_matches_the_factor(monkeypatch):
 
 
 def test_neighbour_pairs_are_the_same_in_any_chunking():
-    from cgamap.mapping.slam2d import NeighbourParams, neighbour_pairs
+    from cgamap.mapping.finishing import NeighbourParams, neighbour_pairs
 
     rng = np.random.default_rng(4)
     X = np.column_stack([rng.uniform(0, 6, 500), rng.uniform(0, 3, 500), np.zeros(500)])

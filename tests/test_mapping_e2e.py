@@ -309,8 +309,9 @@ def test_dense_scans_back_at_the_start_close_no_false_loop(seed):
     points on them than the true one, and once in ten demos that closure bent the map by
     2 m.  Every loop edge must agree with the truth; the false ones are refused."""
     from cgamap.drivers.sim.world import NoiseModel
+    from cgamap.mapping.finishing import NeighbourParams
     from cgamap.mapping.odometry import relative
-    from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+    from cgamap.mapping.slam2d import Mapper, MapperParams
 
     w = get_world("loop")
     angles = (np.arange(1081) - 540) * 2 * np.pi / 1440  # a UTM-30LX's beams

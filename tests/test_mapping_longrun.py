@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 from cgamap.drivers.sim.world import get_world
 from cgamap.mapping.evaluation import ate
+from cgamap.mapping.finishing import NeighbourParams
 from cgamap.mapping.odometry import add_odometry_noise
-from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+from cgamap.mapping.slam2d import Mapper, MapperParams
 from synth2d import scan
 
 

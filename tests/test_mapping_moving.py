@@ -7,8 +7,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from cgamap.mapping.finishing import NeighbourParams
 from cgamap.mapping.moving import MovingParams, moved_in, moved_segments
-from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams
+from cgamap.mapping.slam2d import Mapper, MapperParams
 from synth2d import ROOM, scan, world
 
 AMIN, INC = -np.pi / 2, np.pi / 180  # 180 beams over the half plane ahead (+x)

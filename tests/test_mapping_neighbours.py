@@ -6,10 +6,11 @@ import numpy as np
 from cgamap.drivers.sim.world import get_world
 from cgamap.mapping.correction import CorrectionParams, correct_batch, correct_pose
 from cgamap.mapping.evaluation import ate
+from cgamap.mapping.finishing import NeighbourParams, pad_segments
 from cgamap.mapping.matching import LineIndex
 from cgamap.mapping.odometry import add_odometry_noise, compose_pose2d, relative
 from cgamap.mapping.segments import extract_segments
-from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams, _pad
+from cgamap.mapping.slam2d import Mapper, MapperParams
 from synth2d import scan, world
 
 ROOM = world([(0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2, 4.5, 2)])
@@ -29,8 +30,8 @@ def test_correct_batch_recovers_known_motions_and_matches_correct_pose():
     src = [_segs(ROOM, p, seed=k) for k, p in enumerate(poses)]
     truth = relative(ref[None], np.array(poses))
     guess = truth + rng.normal(0, [0.08, 0.08, 0.03], (6, 3))
-    A, B = _pad([(s.a, s.b) for s in src], 0.0)
-    Da, Db = _pad([(dst.a, dst.b)] * 6, 1e6)
+    A, B = pad_segments([(s.a, s.b) for s in src], 0.0)
+    Da, Db = pad_segments([(dst.a, dst.b)] * 6, 1e6)
     params = CorrectionParams(gates=(0.3, 0.2, 0.12, 0.08, 0.06),
                               angle_gates_deg=(10.0, 7.0, 5.0, 3.0, 2.5))
     # a weak prior (as after a 20 m step): the data decide
@@ -60,7 +61,7 @@ def test_neighbour_pairs_are_spatial_and_sequential():
 def test_neighbour_pairs_are_capped_and_spread_over_time():
     """Many passes over one spot: each scan keeps ``max_pairs`` earlier partners, the oldest
     and the latest visit among them and the rest evenly in between; below the cap, all."""
-    from cgamap.mapping.slam2d import neighbour_pairs
+    from cgamap.mapping.finishing import neighbour_pairs
 
     n, K = 200, 8
     rng = np.random.default_rng(1)
@@ -205,27 +206,27 @@ def test_online_optimisation_leaves_the_finished_nodes_where_the_pass_put_them()
 
 
 def test_pair_turns_reads_the_turn_from_the_walls_directions():
-    from cgamap.mapping.slam2d import pair_turns
+    from cgamap.mapping.finishing import pair_turns
 
     dst = _segs(ROOM, np.array([2.0, 2.5, 0.3]), seed=1)
     for turn_deg in (-7.0, -2.0, 4.5, 8.0):
         # the same place seen from a laser turned ``turn`` more: its walls, turned by
         # ``turn``, line up with the destination's
         src = _segs(ROOM, np.array([2.0, 2.5, 0.3 + np.deg2rad(turn_deg)]), seed=2)
-        A, B = _pad([(src.a, src.b), (src.b, src.a)], 0.0)     # b-a: lines are undirected
-        Da, Db = _pad([(dst.a, dst.b), (dst.a[:2], dst.b[:2])], 1e6)
+        A, B = pad_segments([(src.a, src.b), (src.b, src.a)], 0.0)     # b-a: lines are undirected
+        Da, Db = pad_segments([(dst.a, dst.b), (dst.a[:2], dst.b[:2])], 1e6)
         got = np.degrees(pair_turns(A, B, Da, Db, np.zeros(2), np.deg2rad(10.0)))
         assert np.allclose(got, turn_deg, atol=0.3), (turn_deg, got)
     # no two directions within reach: no turn
-    A, B = _pad([(np.zeros((1, 2)), np.array([[1.0, 0.0]]))], 0.0)
-    Da, Db = _pad([(np.zeros((1, 2)), np.array([[0.0, 1.0]]))], 1e6)
+    A, B = pad_segments([(np.zeros((1, 2)), np.array([[1.0, 0.0]]))], 0.0)
+    Da, Db = pad_segments([(np.zeros((1, 2)), np.array([[0.0, 1.0]]))], 1e6)
     assert pair_turns(A, B, Da, Db, np.zeros(1), np.deg2rad(10.0))[0] == 0.0
 
 
 def test_the_pass_takes_a_pair_back_from_a_turn_beyond_the_corrections_reach():
     from dataclasses import replace
 
-    from cgamap.mapping.slam2d import neighbour_matches
+    from cgamap.mapping.finishing import neighbour_matches
 
     hall = world([(0, 0, 30, 0), (30, 0, 30, 6), (30, 6, 0, 6), (0, 6, 0, 0),
                   (12, 0, 12, 1.2), (19, 6, 19, 4.5), (24, 0, 24, 0.8)])

@@ -8,9 +8,10 @@ from dataclasses import replace
 
 import numpy as np
 from cgamap.drivers.sim.world import get_world
+from cgamap.mapping.finishing import NeighbourParams
 from cgamap.mapping.odometry import add_odometry_noise, compose_pose2d, relative
 from cgamap.mapping.offline import build_map
-from cgamap.mapping.slam2d import Mapper, MapperParams, NeighbourParams, scan_poses
+from cgamap.mapping.slam2d import Mapper, MapperParams, scan_poses
 from synth2d import ROOM, scan, world
 
 PLAIN = MapperParams(neighbours=NeighbourParams(enabled=False))
