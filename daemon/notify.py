@@ -75,8 +75,8 @@ def watchdog_period() -> float | None:
 def extending(step: float = 20.0) -> Iterator[None]:
     """While the block runs, ask the manager every ``step`` / 4 seconds for ``step`` more
     seconds (``EXTEND_TIMEOUT_USEC``, systemd 236 and later; older ones ignore it): the first
-    start after an install or upgrade compiles the mapper's kernels, which takes 30-45 s on a
-    2-core machine and more on a slower one, and must not look like a start that hangs
+    start after an install or upgrade compiles the mapper's kernels, which takes about 30 s on
+    a 2-core machine and more on a slower one, and must not look like a start that hangs
     (``TimeoutStartSec``).  A start that really hangs stops asking and times out as before.
     Not under systemd, nothing is sent."""
     if _address() is None:

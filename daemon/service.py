@@ -100,7 +100,7 @@ class Daemon:
     # -- the run ---------------------------------------------------------------------------
     def run(self) -> int:
         notify.status("compiling the mapper's kernels")
-        # 30-45 s uncached on a 2-core machine (once per install): before the first scan,
+        # about 30 s uncached on a 2-core machine (once per install): before the first scan,
         # with the start-up timeout extended while it lasts
         with notify.extending():
             log.info("mapper kernels ready in %.1f s", warm_up())

@@ -33,8 +33,9 @@ def kernel(fn):
 def warm_up() -> float:
     """Compile every kernel for the argument types the mapper passes (or load them from the
     cache), on a tiny made-up scan; returns the seconds it took.  Without a cache that is
-    30-45 s on the 2-core machine (35-43 s measured on 2026-12-02, 31 s before that day's
-    relocalisation kernels): the daemon does it before it reports ready (asking systemd for
+    about 30 s on the 2-core machine (27-28 s measured on 2026-12-02; 31 s before that day's
+    relocalisation kernels, 35-43 s with them before the pair solve's sorts were written
+    out): the daemon does it before it reports ready (asking systemd for
     the time, :func:`..daemon.notify.extending`), not on its first scan."""
     import time
 
