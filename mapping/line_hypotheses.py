@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import kernel
+from .jit import kernel, stable_argsort
 from .odometry import wrap_angle as _wrap
 
 
@@ -35,39 +35,6 @@ def rotation_peaks(phi_g, len_g, phi_l, len_l, bin_deg: float, peaks: int) -> np
             centre = centre + np.sum(w[near] * dd[near]) / np.sum(w[near])
         out[k] = centre
     return out
-
-
-@kernel
-def _argsort(x):
-    """Indices that sort ``x`` (float64) ascending, ties in index order (a bottom-up merge
-    sort: numba compiles numpy's sorts in seconds each, this in a fraction of one)."""
-    n = x.size
-    idx = np.arange(n)
-    tmp = np.empty(n, np.int64)
-    width = 1
-    while width < n:
-        for lo in range(0, n, 2 * width):
-            mid, hi = min(lo + width, n), min(lo + 2 * width, n)
-            i, j, k = lo, mid, lo
-            while i < mid and j < hi:
-                if x[idx[j]] < x[idx[i]]:
-                    tmp[k] = idx[j]
-                    j += 1
-                else:
-                    tmp[k] = idx[i]
-                    i += 1
-                k += 1
-            while i < mid:
-                tmp[k] = idx[i]
-                i += 1
-                k += 1
-            while j < hi:
-                tmp[k] = idx[j]
-                j += 1
-                k += 1
-        idx, tmp = tmp, idx
-        width *= 2
-    return idx
 
 
 @kernel
@@ -109,7 +76,7 @@ def _pair_kernel(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2, w1,
         y0, y1 = cy + lo2[b] * u2[b, 1], cy + hi2[b] * u2[b, 1]
         bx0[b], bx1[b] = min(x0, x1) - eps, max(x0, x1) + eps
         by0[b], by1[b] = min(y0, y1) - eps, max(y0, y1) + eps
-    order = _argsort(bx0)
+    order = stable_argsort(bx0)
     left = bx0[order]
     width = 0.0
     for b in range(n2):
@@ -132,7 +99,7 @@ def _pair_kernel(A1, A2, d1, d2, u1, lo1, hi1, u2, lo2, hi2, delta1, delta2, w1,
                 m += 1
             j += 1
         hit = near[:m]
-        for b in hit[_argsort(hit.astype(np.float64))]:      # in index order
+        for b in hit[stable_argsort(hit.astype(np.float64))]:      # in index order
             a21, a22 = A2[b, 0], A2[b, 1]
             det = a11 * a22 - a12 * a21
             if abs(det) <= 0.3:

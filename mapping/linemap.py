@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .free_space import ClearParams
-from .jit import kernel
+from .jit import kernel, stable_argsort
 from .matching import match_candidates
 from .segments import Segments, tls_fit
 
@@ -248,7 +248,7 @@ def unique_inverse(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @kernel
 def _unique_inverse(x):
-    order = np.argsort(x, kind="mergesort")
+    order = stable_argsort(x)
     inv = np.empty(len(x), np.int64)
     vals = np.empty(len(x), np.int64)
     n = -1

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .jit import kernel
+from .jit import kernel, stable_argsort
 
 
 @dataclass(frozen=True)
@@ -240,7 +240,7 @@ def _split_merge(p, tol, starts, ends, is_break, small, min_points, merge_residu
         if n_ok == 0:
             break
         chosen = np.zeros(k - 1, np.bool_)
-        for i in np.argsort(score, kind="mergesort")[:n_ok]:
+        for i in stable_argsort(score)[:n_ok]:
             if (i > 0 and chosen[i - 1]) or (i + 1 < k - 1 and chosen[i + 1]):
                 continue
             chosen[i] = True

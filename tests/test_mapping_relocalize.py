@@ -255,12 +255,17 @@ def test_line_candidates_are_every_pair_that_fits_and_every_end():
 def test_the_pair_solves_sort_and_search_are_numpys():
     # the compiled merge sort and binary search that the sweep and prune uses, against numpy
     # (stable order, ties included; values below, between, on and above the sorted ones)
-    from cgamap.mapping.line_hypotheses import _argsort, _first_at_least
+    from cgamap.mapping.jit import stable_argsort
+    from cgamap.mapping.line_hypotheses import _first_at_least
 
     rng = np.random.default_rng(0)
     for n in (0, 1, 2, 7, 100, 1001):
         x = rng.integers(0, 20, n).astype(float)
-        assert np.array_equal(_argsort(x), np.argsort(x, kind="stable"))
+        assert np.array_equal(stable_argsort(x), np.argsort(x, kind="stable"))
+        xi = rng.integers(-5, 5, n)
+        assert np.array_equal(stable_argsort(xi), np.argsort(xi, kind="stable"))
+        x[::5] = np.nan                                   # NaNs last, as numpy puts them
+        assert np.array_equal(stable_argsort(x), np.argsort(x, kind="stable"))
         xs = np.sort(x)
         for v in (-1.0, 0.0, 5.0, 5.5, 19.0, 30.0):
             assert _first_at_least(xs, v) == np.searchsorted(xs, v)
