@@ -453,10 +453,11 @@ def calibration_figures(cal: dict) -> dict:
 
 def sweep_matches(X: np.ndarray, scans: list, travel: np.ndarray, LP: LoopParams,
                   stop=None) -> EdgeArrays:
-    """:meth:`Mapper._sweep_closures` from kept scans instead of the map's contributions, all
-    candidates solved together: every ``sweep_every``-th scan against the submap (scans
-    +- ``window``) of its nearest earlier visit within ``sweep_radius``; a tracking closure
-    that fixes the pose in every direction and fits becomes an edge (j to i, robust)."""
+    """Tracking closures (as :meth:`.slam2d.Mapper._closure_by_tracking` finds them online)
+    from kept scans instead of the map's contributions, all candidates solved together: every
+    ``sweep_every``-th scan against the submap (scans +- ``window``) of its nearest earlier
+    visit within ``sweep_radius``; a tracking closure that fixes the pose in every direction
+    and fits becomes an edge (j to i, robust)."""
     n = len(X)
     i = np.arange(0, n, LP.sweep_every)
     last = np.minimum(np.searchsorted(travel, travel[i] - LP.min_travel, side="right") - 1,

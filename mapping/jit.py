@@ -72,7 +72,7 @@ def warm_up() -> float:
     about 25-30 s on the 2-core machine (25-28 s measured on 2026-12-02; 31 s before that
     day's relocalisation kernels, 35-43 s with them before the kernels' sorts were written
     out, :func:`stable_argsort`): the daemon does it before it reports ready (asking systemd for
-    the time, :func:`..daemon.notify.extending`), not on its first scan."""
+    the time), not on its first scan."""
     import time
 
     import numpy as np

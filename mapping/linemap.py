@@ -183,9 +183,10 @@ _IMAX, _IMIN = np.iinfo(np.int64).max, np.iinfo(np.int64).min
 
 def fuse_groups(group: np.ndarray, m: int, n: np.ndarray, centroid: np.ndarray,
                 scatter: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple:
-    """:func:`fuse` for many groups at once: members with ``group`` label g in [0, m) form
-    segment g.  Returns per group (count N, centroid C, scatter S, end points pa, pb, RMS
-    orthogonal residual); groups without members get N = 0 (and meaningless geometry)."""
+    """Segments fused from their members, many groups at once: members with ``group`` label g
+    in [0, m) form segment g (:func:`_fuse_groups`).  Returns per group (count N, centroid
+    C, scatter S, end points pa, pb, RMS orthogonal residual); groups without members get
+    N = 0 (and meaningless geometry)."""
     f = np.ascontiguousarray
     return _fuse_groups(f(group, dtype=np.int64), int(m), f(n, dtype=float),
                         f(centroid, dtype=float), f(scatter, dtype=float), f(a, dtype=float),
