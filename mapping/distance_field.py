@@ -58,6 +58,13 @@ class DistanceField:
             self._img = None   # the drawn walls were kept for this grid only
         return self._seg_id
 
+    @property
+    def segments(self) -> np.ndarray:
+        """Per map segment, the row the nearest-segment grid (:attr:`seg_id`) points at:
+        start point (x, y), unit direction (ux, uy) and length, (n, 5); built with the grid."""
+        self.seg_id  # noqa: B018  (builds the grid and this table)
+        return self._tab
+
     def nearest(self, gx: np.ndarray, gy: np.ndarray, full: bool = False):
         """For points (gx, gy) of any shape: (segment index, signed distance to its line,
         distance to the segment itself, off-grid mask).  Exact point-to-line geometry on

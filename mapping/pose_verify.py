@@ -202,8 +202,7 @@ def icp_poses(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
     damping keeps a direction nothing fixes where it was.  Compiled (:func:`_icp_kernel`):
     in numpy its (poses x points) temporaries were half of a trial on the Intel map."""
     x = np.array(poses, dtype=float, copy=True).reshape(-1, 3)
-    field.seg_id  # noqa: B018  (builds the nearest-segment grid and its table)
-    _icp_kernel(field.seg_id, field._tab, float(field.lo[0]), float(field.lo[1]),
+    _icp_kernel(field.seg_id, field.segments, float(field.lo[0]), float(field.lo[1]),
                 float(field.res), float(field.far), np.ascontiguousarray(pts, dtype=float),
                 np.asarray(gates, dtype=float), x)
     return x
@@ -294,9 +293,8 @@ def crossed_fractions(field: DistanceField, pts: np.ndarray, poses: np.ndarray,
     step = P.crossing_step
     f = np.arange(P.cross_skip, min(float(r.max()), P.cross_range), step)  # (S,)
     u = pts / np.maximum(r, 1e-9)[:, None]
-    field.seg_id  # noqa: B018  (builds the nearest-segment grid and its table)
     out = np.empty(len(poses))
-    _crossings_kernel(field.dist, field.seg_id, field._tab, float(field.lo[0]),
+    _crossings_kernel(field.dist, field.seg_id, field.segments, float(field.lo[0]),
                       float(field.lo[1]), float(field.res), np.ascontiguousarray(u), r, f,
                       # the field's own precision, as numpy compared it
                       np.float32(0.6 * step + 0.5 * field.res), float(P.cross_margin),
