@@ -3,7 +3,11 @@
 A scan's correction and segment extraction work on a few dozen segments: in numpy every
 step is a call over arrays of tens of elements, and the calls, not the arithmetic, were
 the cost (about 2 ms per Intel scan on the 2-core machine, most of it call overhead).  The
-few loops that carry that work are compiled; everything else stays numpy.
+few loops that carry that work are compiled; everything else stays numpy.  Relocalisation
+compiles its candidate counts, sweeps and verification for the opposite reason: many
+thousand candidates, whose (candidates x points) temporaries cost more than the reads.
+This module holds the decorator (:func:`kernel`), the one sort the kernels share
+(:func:`stable_argsort`) and the warm-up that compiles them all (:func:`warm_up`).
 
 Compiled code is cached on disk next to the module (numba's ``cache=True``), or under
 ``NUMBA_CACHE_DIR`` when set (the systemd unit points it at the service's cache
