@@ -21,6 +21,7 @@ import numpy as np
 
 from .jit import kernel
 from .matching import LineIndex, line_normals, match_index, near_box, near_segments, pair_cost
+from .odometry import move_points
 from .segments import Segments
 
 _G = 0.5 / np.sqrt(3.0)  # Gauss points at t = 1/2 -+ 1/(2 sqrt 3) integrate quadratics exactly
@@ -78,19 +79,6 @@ class Correction:
     @property
     def matched_fraction(self) -> float:
         return self.matched_length / self.total_length if self.total_length > 0 else 0.0
-
-
-def _rot_t(theta) -> np.ndarray:
-    """Transposes of the rotations by theta (...,) -> (..., 2, 2): row vectors
-    p @ _rot_t(t) are rotated by t."""
-    c, s = np.cos(theta), np.sin(theta)
-    out = np.empty(np.shape(c) + (2, 2))
-    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, s, -s, c
-    return out
-
-
-def _transform(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    return p @ _rot_t(pose[2]) + pose[:2]
 
 
 @dataclass
@@ -276,7 +264,7 @@ def correct_pose(seg_l: Segments, map_a: np.ndarray, map_b: np.ndarray, predicte
     if k == 0 or len(map_a) == 0:
         return unmatched()
     # map segments anywhere near the scan under the widest gate; later passes look only there
-    ga, gb = _transform(seg_l.a, pred), _transform(seg_l.b, pred)
+    ga, gb = move_points(seg_l.a, pred), move_points(seg_l.b, pred)
     wide = max(params.gates) * 1.5
     # only map segments whose eq. (15) sphere can reach the scan's: centre within the sum of
     # the radii (+ the margin on both) of the scan's bounding box

@@ -59,6 +59,7 @@ from .distance_field import DistanceField
 from .line_hypotheses import line_candidates, rotation_peaks
 from .linemap import LineMap
 from .matching import LineIndex, line_angles, line_normals
+from .odometry import move_points
 from .odometry import wrap_angle as _wrap
 from .pose_verify import (
     best_distinct,
@@ -392,8 +393,7 @@ def inlier_fraction(points: np.ndarray, pose, a: np.ndarray, b: np.ndarray,
     ``pose`` (direct point-to-segment distances: for small maps, no distance field)."""
     if not len(points) or not len(a):
         return 0.0
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    g = points @ np.array([[c, s], [-s, c]]) + np.asarray(pose[:2])
+    g = move_points(points, np.asarray(pose, dtype=float))
     d = b - a
     L2 = np.maximum(np.sum(d * d, axis=-1), 1e-12)
     t = np.clip(((g[:, None, 0] - a[None, :, 0]) * d[None, :, 0]

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .odometry import move_points
+
 
 @dataclass(frozen=True)
 class IcpParams:
@@ -78,8 +80,7 @@ def icp(src: ScanPoints, dst: ScanPoints, guess, params: IcpParams | None = None
     if len(src.points) < P.min_pairs or len(dst.points) < P.min_pairs:
         return None
     for _ in range(P.iterations):
-        c, s = np.cos(x[2]), np.sin(x[2])
-        q = src.points @ np.array([[c, s], [-s, c]]) + x[:2]
+        q = move_points(src.points, x)
         dist, j = dst.tree.query(q, distance_upper_bound=P.max_gap)
         ok = np.isfinite(dist)
         ok[ok] &= dst.has_normal[j[ok]]
