@@ -189,7 +189,7 @@ def read_messages(path: str | Path) -> Iterator[Any]:
                  limit)
     # each scan written twice (FLASER and ROBOTLASER1): replayed once, as ``map build`` reads it
     index = (RepeatIndex(m for _, m in read_tagged(path, lenient=True, types=("ROBOTLASER1",)))
-             if st.by_type.get("FLASER") and st.by_type.get("ROBOTLASER1") else None)
+             if st.both_scan_kinds else None)
     dropped = 0
     for kind, msg in read_tagged(path, lenient=True):
         if index is not None and index.repeats(kind, msg):

@@ -59,6 +59,12 @@ class CarmenStats:
     # written with both messages per scan (:func:`read_scans` keeps one)
     duplicates: int = 0
 
+    @property
+    def both_scan_kinds(self) -> bool:
+        """Whether the log held FLASER and ROBOTLASER1 lines: a logger that may have written
+        each scan twice (:class:`RepeatIndex` tells)."""
+        return bool(self.by_type.get("FLASER") and self.by_type.get("ROBOTLASER1"))
+
 
 def beam_geometry(n: int) -> tuple[float, float]:
     """(angle_min, angle_increment) of an n-beam FLASER scan over 180° (DESIGN.md)."""
@@ -203,7 +209,7 @@ def read_scans(path: str | Path, *, lenient: bool = False,
     tagged = list(read_tagged(path, lenient=lenient, stats=st,
                               types=("FLASER", "ROBOTLASER1")))
     scans = [m for _, m in tagged]
-    if st.by_type.get("FLASER") and st.by_type.get("ROBOTLASER1"):
+    if st.both_scan_kinds:
         index = RepeatIndex(m for k, m in tagged if k == "ROBOTLASER1")
         scans = [m for k, m in tagged if not index.repeats(k, m)]
         st.duplicates = len(tagged) - len(scans)
