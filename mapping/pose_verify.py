@@ -37,12 +37,17 @@ def inlier_scores(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.n
 
 
 @kernel
+def _cell(gx, gy, lo0, lo1, res):
+    """The grid cell (column, row; floats, maybe off the grid) of map point (gx, gy): the
+    nearest cell, as :meth:`DistanceField.lookup_xy` takes it."""
+    return np.floor((gx - lo0) / res + 0.5), np.floor((gy - lo1) / res + 0.5)
+
+
+@kernel
 def _cell_of(c, s, x, y, tx, ty, lo0, lo1, res):
-    """The grid cell (column, row; floats, maybe off the grid) of scan point (x, y) under
-    the pose of rotation (cos c, sin s) and translation (tx, ty): the nearest cell, as
-    :meth:`DistanceField.lookup_xy` takes it."""
-    return (np.floor((c * x - s * y + tx - lo0) / res + 0.5),
-            np.floor((s * x + c * y + ty - lo1) / res + 0.5))
+    """:func:`_cell` of scan point (x, y) under the pose of rotation (cos c, sin s) and
+    translation (tx, ty)."""
+    return _cell(c * x - s * y + tx, s * x + c * y + ty, lo0, lo1, res)
 
 
 @kernel
@@ -113,14 +118,15 @@ def best_distinct(field: DistanceField, pts: np.ndarray, T: np.ndarray, th: np.n
         order = np.argsort(-inlier_scores(field, pts, T, th, inlier), kind="stable")
         return distinct_cells(T, th, order, cell, ang, k)
     cells, cid = np.unique(_cell_keys(T, th, cell, ang), return_inverse=True)
+    cid = cid.ravel().astype(np.int64)
     counts = np.empty(len(T), np.int64)
     _pruned_counts(field.inlier_bits(inlier), float(field.lo[0]), float(field.lo[1]),
                    float(field.res), np.ascontiguousarray(pts[spread_order(len(pts))], dtype=float),
                    np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(th, dtype=float),
-                   cid.ravel().astype(np.int64), len(cells), int(k), counts)
+                   cid, len(cells), int(k), counts)
     done = np.nonzero(counts >= 0)[0]
     order = done[np.argsort(-counts[done], kind="stable")]
-    return _first_per_cell(order, cid.ravel().astype(np.int64), len(cells), int(k))
+    return _first_per_cell(order, cid, len(cells), int(k))
 
 
 @lru_cache(maxsize=64)
@@ -224,8 +230,8 @@ def _icp_kernel(seg_id, tab, lo0, lo1, res, far, pts, gates, x):
                 rx = c * pts[j, 0] - s * pts[j, 1]
                 ry = s * pts[j, 0] + c * pts[j, 1]
                 gx, gy = rx + x[h, 0], ry + x[h, 1]
-                qx = int(np.floor((gx - lo0) / res + 0.5))
-                qy = int(np.floor((gy - lo1) / res + 0.5))
+                fx, fy = _cell(gx, gy, lo0, lo1, res)
+                qx, qy = int(fx), int(fy)
                 on_grid = qx >= 0 and qy >= 0 and qx < nx and qy < ny
                 sid = seg_id[min(max(qy, 0), ny - 1), min(max(qx, 0), nx - 1)]
                 ux, uy, L = tab[sid, 2], tab[sid, 3], tab[sid, 4]
@@ -323,8 +329,8 @@ def _crossings_kernel(dist, seg_id, tab, lo0, lo1, res, u, r, f, near, margin, p
                 if not fk < r[b] - margin:
                     break
                 sx, sy = ox + ugx * fk, oy + ugy * fk
-                qx = int(np.floor((sx - lo0) / res + 0.5))
-                qy = int(np.floor((sy - lo1) / res + 0.5))
+                fx, fy = _cell(sx, sy, lo0, lo1, res)
+                qx, qy = int(fx), int(fy)
                 if not (qx >= 0 and qy >= 0 and qx < nx and qy < ny) or not dist[qy, qx] < near:
                     continue
                 sid = seg_id[qy, qx]
