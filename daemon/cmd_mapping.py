@@ -29,9 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--out", required=True,
                    help="output directory (created if missing; an earlier map.json in it is "
                         "kept as map.json.bak)")
-    b.add_argument("--odom-noise", choices=["none", "low", "high"], default="none",
+    b.add_argument("--odom-noise", choices=["none", "low", "high", "wheels"], default="none",
                    help="corrupt the log's odometry with this preset "
-                        "(cgamap.mapping.odometry.ODOM_NOISE_PRESETS)")
+                        "(cgamap.mapping.odometry.ODOM_NOISE_PRESETS); 'wheels' replays the "
+                        "robot's own wheel odometry from the log's ODOM lines instead, with "
+                        "no noise added (in a corrected log the laser lines' odometry fields "
+                        "are the corrected poses, but its ODOM lines keep the wheels' steps)")
     b.add_argument("--seed", type=int, default=0, help="seed of the odometry noise")
     b.add_argument("--relations", metavar="FILE",
                    help="relative-pose ground truth (Kümmerle et al. 2009 format, e.g. "
@@ -82,8 +85,11 @@ def _progress(label: str, quiet: bool):
     return lines
 
 
-def _read_log(path: str, lenient: bool, quiet: bool = False):
-    from cgamap.drivers.carmen import CarmenFormatError, CarmenStats, read_scans
+def _read_log(path: str, lenient: bool, quiet: bool = False, wheels: bool = False):
+    """The log's scans, the reader's stats, and with ``wheels`` its ODOM readings at the
+    scans (:class:`cgamap.drivers.carmen.WheelReadings`; None without ODOM lines or
+    ``wheels``)."""
+    from cgamap.drivers.carmen import CarmenFormatError, CarmenStats, read_scans_and_wheels
 
     p = Path(path)
     if p.is_dir():
@@ -92,7 +98,7 @@ def _read_log(path: str, lenient: bool, quiet: bool = False):
         raise UsageError(f"--log: {path}: no such file")
     st = CarmenStats()
     try:
-        scans = read_scans(p, lenient=lenient, stats=st)
+        scans, readings = read_scans_and_wheels(p, lenient=lenient, stats=st, wheels=wheels)
     except CarmenFormatError as exc:
         raise UsageError(f"--log: {exc}") from None
     except (OSError, EOFError) as exc:
@@ -105,7 +111,7 @@ def _read_log(path: str, lenient: bool, quiet: bool = False):
     if st.saturated_range is not None and not quiet:
         print(f"--log: {st.saturated_beams} readings of {st.saturated_range:g} m (the log's "
               "longest, repeated) taken as no return", file=sys.stderr)
-    return scans, st
+    return scans, st, readings
 
 
 def _read_relations(path: str) -> np.ndarray:
@@ -191,12 +197,13 @@ def run_build(args: argparse.Namespace) -> int:
     from cgamap.mapping.fileio import write_text_atomic
     from cgamap.mapping.linemap import LineMap  # noqa: F401  (import check before work)
     from cgamap.mapping.mapio import save_map
-    from cgamap.mapping.offline import build_map, log_odometry
+    from cgamap.mapping.offline import WHEELS, build_map, log_odometry, wheel_steps
     from cgamap.mapping.render import export_occupancy, render_png
     from cgamap.mapping.slam2d import MapperParams
 
     params, overrides = _read_params(args.params) if args.params else (MapperParams(), {})
-    scans, st = _read_log(args.log, args.lenient, args.quiet)
+    wheels = args.odom_noise == WHEELS
+    scans, st, readings = _read_log(args.log, args.lenient, args.quiet, wheels)
     relations = _read_relations(args.relations) if args.relations else None
     out = Path(args.out)
     try:
@@ -204,8 +211,11 @@ def run_build(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UsageError(f"--out: {out}: cannot create ({exc.strerror})") from None
     try:
-        odo, mount = log_odometry(scans, args.odom_noise, args.seed)
+        odo, mount = log_odometry(scans, args.odom_noise, args.seed,
+                                  None if readings is None else (readings.at, readings.start))
     except ValueError as exc:
+        if wheels:
+            raise UsageError(f"--odom-noise wheels: {args.log}: {exc}") from None
         raise UsageError(f"--log: {exc}; cannot replay without odometry") from None
     if args.no_loop_closure:
         params = replace(params, loop=replace(params.loop, enabled=False))
@@ -237,6 +247,10 @@ def run_build(args: argparse.Namespace) -> int:
         report["no_return_readings"] = st.saturated_beams
     if mount is not None:
         report["laser_mount"] = [round(float(v), 5) for v in mount]
+    if readings is not None:
+        report["wheel_odometry"] = {
+            "odom_lines": readings.readings, "rebased": readings.rebased,
+            "unknown_steps": wheel_steps(readings.at, readings.start)[1]}
     if relations is not None:
         report["relations"] = _relations_report(relations, res.stamps, res.poses, scans, odo)
     write_text_atomic(out / "report.json", json.dumps(report, indent=2) + "\n")
@@ -300,7 +314,7 @@ def run_relocalize(args: argparse.Namespace) -> int:
     if len(lmap) < 2:
         raise UsageError(f"--map: {args.map}: the map has fewer than 2 segments")
     segment_params = _segment_params(lmap)
-    scans, _ = _read_log(args.log, args.lenient)
+    scans, _, _ = _read_log(args.log, args.lenient)
     if any(s.pose_ref is None for s in scans):
         raise UsageError("--log: scans carry no reference poses to score against")
     align = _alignment(lmap.metadata.get("alignment_to_reference"))

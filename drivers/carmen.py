@@ -205,20 +205,102 @@ def read_scans(path: str | Path, *, lenient: bool = False,
     """All front-laser scans of a log (FLASER or ROBOTLASER1), in order.  With
     ``saturation``, a no-return value written as a reading (:func:`saturation_range`)
     becomes NaN, and ``stats`` records it."""
+    return read_scans_and_wheels(path, lenient=lenient, stats=stats, saturation=saturation,
+                                 wheels=False)[0]
+
+
+def read_scans_and_wheels(path: str | Path, *, lenient: bool = False,
+                          stats: CarmenStats | None = None, saturation: bool = True,
+                          wheels: bool = True) -> tuple[list[LaserScan], WheelReadings | None]:
+    """:func:`read_scans`, and with ``wheels`` the log's ODOM readings at each of those
+    scans (:class:`WheelReadings`; None when the log has no ODOM line), from one reading of
+    the file."""
     st = stats if stats is not None else CarmenStats()
-    tagged = list(read_tagged(path, lenient=lenient, stats=st,
-                              types=("FLASER", "ROBOTLASER1")))
-    scans = [m for _, m in tagged]
+    types = ("FLASER", "ROBOTLASER1", "ODOM") if wheels else ("FLASER", "ROBOTLASER1")
+    tagged = list(read_tagged(path, lenient=lenient, stats=st, types=types))
+    lines = sum(k != "ODOM" for k, _ in tagged)
     if st.both_scan_kinds:
         index = RepeatIndex(m for k, m in tagged if k == "ROBOTLASER1")
-        scans = [m for k, m in tagged if not index.repeats(k, m)]
-        st.duplicates = len(tagged) - len(scans)
+        tagged = [(k, m) for k, m in tagged if not index.repeats(k, m)]
+    scans = [m for k, m in tagged if k != "ODOM"]
+    st.duplicates = lines - len(scans)
     if saturation:
         limit = saturation_range(scans)
         if limit is not None:
             st.saturated_range = limit
             st.saturated_beams = sum(drop_saturated(s, limit) for s in scans)
-    return scans
+    return scans, (wheel_readings(tagged) if wheels and st.odometry else None)
+
+
+@dataclass
+class WheelReadings:
+    """A log's wheel odometry (its ODOM lines) at each front-laser scan, to replay the
+    robot's own odometry rather than a noise model's.
+
+    ``at[k]``: the odometry pose when scan k was taken; ``start[k]``: the pose the readings
+    after scan k count from, so the wheels' motion from scan k-1 to scan k is ``start[k-1]``
+    to ``at[k]``.  In a log of raw odometry the readings run on (``start`` is ``at``; ``at``
+    is interpolated by time between the readings around the scan).  GMapping writes its
+    corrected logs otherwise (``rebased``): after each scan an ODOM line at the scan's
+    corrected pose, then the wheels' increments from there, the last one stamped with the
+    next scan's time (the Intel and MIT CSAIL corrected logs are such).  NaN rows: no
+    reading before the scan, so its step is unknown."""
+
+    at: np.ndarray      # (n, 3)
+    start: np.ndarray   # (n, 3)
+    rebased: bool
+    readings: int       # ODOM lines
+
+
+REBASE_TOL = 1e-3  # m and rad: an ODOM line that repeats the scan's pose (logs round to 1e-6)
+
+
+def wheel_readings(tagged: list[tuple[str, LaserScan | OdometryPose]]) -> WheelReadings:
+    """:class:`WheelReadings` from a log's front-laser scans and ODOM readings in log order
+    (``(kind, message)`` as :func:`read_tagged` yields them).  The log counts as ``rebased``
+    when the first reading after at least 90 % of its scans (those followed by one before the
+    next scan) sits at the scan's own odometry pose."""
+    scan_at = [i for i, (k, _) in enumerate(tagged) if k != "ODOM"]
+    odo_at = np.array([i for i, (k, _) in enumerate(tagged) if k == "ODOM"], int)
+    odo = np.array([(m.x, m.y, m.theta) for k, m in tagged if k == "ODOM"],
+                   float).reshape(-1, 3)
+    t_odo = np.array([m.stamp_ns for k, m in tagged if k == "ODOM"], np.int64)
+    n = len(scan_at)
+    # per scan: the last reading before its line and the first after it (-1 / len: none)
+    before = np.searchsorted(odo_at, scan_at) - 1
+    after = before + 1
+    nxt = np.append(scan_at[1:], len(tagged))
+    follows = (after < len(odo_at)) & (odo_at[np.minimum(after, len(odo_at) - 1)] < nxt)
+    own = np.array([m.pose_odom if m.pose_odom is not None else
+                    (m.pose_ref if m.pose_ref is not None else (np.nan,) * 3)
+                    for k, m in tagged if k != "ODOM"], float).reshape(-1, 3)
+    first = odo[np.minimum(after, len(odo) - 1)] if len(odo) else np.full((n, 3), np.nan)
+    d = np.abs(first - own)
+    d[:, 2] = np.abs((d[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+    at_pose = follows & (d.max(axis=1) <= REBASE_TOL)
+    rebased = bool(follows.sum() and at_pose.sum() >= 0.9 * follows.sum())
+    at = np.full((n, 3), np.nan)
+    has = before >= 0
+    if rebased:  # a reading older than the scan before counts from another rebase
+        prev = np.append(-1, scan_at[:-1])
+        has &= odo_at[np.maximum(before, 0)] > prev
+    at[has] = odo[before[has]]
+    if rebased:
+        start = np.where((follows & at_pose)[:, None], first, at)
+        return WheelReadings(at, start, True, len(odo))
+    # raw odometry: between the readings around the scan by time, where their stamps allow
+    t_scan = np.array([tagged[i][1].stamp_ns for i in scan_at], np.int64)
+    both = has & (after < len(odo))
+    k = np.flatnonzero(both)
+    t0, t1 = t_odo[before[k]], t_odo[after[k]]
+    ok = (t1 > t0) & (t0 <= t_scan[k]) & (t_scan[k] <= t1)
+    k, t0, t1 = k[ok], t0[ok], t1[ok]
+    w = ((t_scan[k] - t0) / (t1 - t0))[:, None]
+    p0, p1 = odo[before[k]], odo[after[k]]
+    step = p1 - p0
+    step[:, 2] = (step[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    at[k] = p0 + w * step
+    return WheelReadings(at, at.copy(), False, len(odo))
 
 
 class RepeatIndex:

@@ -26,7 +26,14 @@ from .evaluation import (
 from .finishing import calibration_figures
 from .jit import warm_up
 from .linemap import LineMap
-from .odometry import add_odometry_noise, compose_pose2d, laser_mount, wrap_angle
+from .odometry import (
+    add_odometry_noise,
+    compose_pose2d,
+    integrate_increments,
+    laser_mount,
+    relative,
+    wrap_angle,
+)
 from .relocalize import DistanceField, RelocParams, relocalize
 from .segments import SegmentParams, extract_segments
 from .slam2d import Mapper, MapperParams, scan_poses
@@ -47,14 +54,21 @@ def _stats_ms(ts) -> tuple[float, float]:
     return (float(np.median(ms)), float(np.percentile(ms, 95))) if len(ms) else (0.0, 0.0)
 
 
-def log_odometry(scans: Sequence, preset: str = "none", seed: int = 0
+WHEELS = "wheels"  # the odometry choice that replays a log's own ODOM readings
+
+
+def log_odometry(scans: Sequence, preset: str = "none", seed: int = 0,
+                 wheels: tuple[np.ndarray, np.ndarray] | None = None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """The laser's odometry (n, 3) for replaying a log, and the laser's mount (None for a
     laser at the robot's centre).  Each scan's odometry pose (its reference pose where it
     has none) gets ``preset`` noise on the robot's increments (:func:`.add_odometry_noise`),
     then is carried to the laser by the one offset the log's laser poses keep from it
     (:func:`.laser_mount`): a laser off the centre moves differently when the robot turns.
-    ValueError when a scan carries no pose at all."""
+    With ``preset`` ``"wheels"`` the robot's steps are instead the log's own wheel odometry
+    between the scans, ``wheels`` = (at, start) as :func:`wheel_steps` takes them, chained
+    from the first scan's odometry pose, with no noise added.
+    ValueError when a scan carries no pose at all, or ``wheels`` is missing or unusable."""
     odo = [s.pose_odom if s.pose_odom is not None else s.pose_ref for s in scans]
     if any(o is None for o in odo):
         raise ValueError("scans carry no poses (no odometry fields)")
@@ -62,8 +76,28 @@ def log_odometry(scans: Sequence, preset: str = "none", seed: int = 0
     ref = [s.pose_ref for s in scans]
     mount = (laser_mount(odo, np.array(ref, float)) if all(r is not None for r in ref)
              and all(s.pose_odom is not None for s in scans) else None)
-    odo = add_odometry_noise(odo, preset, seed)
+    if preset == WHEELS:
+        if wheels is None:
+            raise ValueError("the log has no ODOM lines (wheel odometry) to replay")
+        steps, unknown = wheel_steps(*wheels)
+        if len(steps) and unknown == len(steps):
+            raise ValueError("no ODOM reading falls between two scans")
+        odo = integrate_increments(steps, odo[0]) if len(odo) else odo
+    else:
+        odo = add_odometry_noise(odo, preset, seed)
     return (odo if mount is None else compose_pose2d(odo, mount)), mount
+
+
+def wheel_steps(at: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, int]:
+    """The robot's (n - 1, 3) steps between n scans from its wheel odometry: step k from
+    ``start[k]`` to ``at[k + 1]`` (a log's readings at each scan, and where the readings
+    after it count from; the same poses in a log of raw odometry), and how many were
+    unknown (a NaN reading) and taken as no motion."""
+    at, start = np.asarray(at, float).reshape(-1, 3), np.asarray(start, float).reshape(-1, 3)
+    steps = relative(start[:-1], at[1:])
+    unknown = ~np.isfinite(steps).all(axis=1)
+    steps[unknown] = 0.0
+    return steps, int(unknown.sum())
 
 
 def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None = None,
