@@ -217,6 +217,10 @@ def run_build(args: argparse.Namespace) -> int:
         if wheels:
             raise UsageError(f"--odom-noise wheels: {args.log}: {exc}") from None
         raise UsageError(f"--log: {exc}; cannot replay without odometry") from None
+    if readings is not None and readings.at_scan_time < 0.5 and not args.quiet:
+        print(f"map build: warning: {readings.at_scan_time:.0%} of the log's scans have an "
+              "ODOM reading of their own time: the wheel steps miss the motion between the "
+              "last reading and each scan", file=sys.stderr)
     if args.no_loop_closure:
         params = replace(params, loop=replace(params.loop, enabled=False))
     res = build_map(scans, odo, params, _progress("map build", args.quiet),
@@ -250,7 +254,8 @@ def run_build(args: argparse.Namespace) -> int:
     if readings is not None:
         report["wheel_odometry"] = {
             "odom_lines": readings.readings, "rebased": readings.rebased,
-            "unknown_steps": wheel_steps(readings.at, readings.start)[1]}
+            "unknown_steps": wheel_steps(readings.at, readings.start)[1],
+            "at_scan_time": readings.at_scan_time}
     if relations is not None:
         report["relations"] = _relations_report(relations, res.stamps, res.poses, scans, odo)
     write_text_atomic(out / "report.json", json.dumps(report, indent=2) + "\n")

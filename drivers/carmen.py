@@ -250,6 +250,10 @@ class WheelReadings:
     start: np.ndarray   # (n, 3)
     rebased: bool
     readings: int       # ODOM lines
+    # share of the scans after the first whose ``at`` is a reading of the scan's own time
+    # (stamped within 1 ms, or interpolated): where it is low, the log's readings came
+    # between the scans and each step misses the motion after its last reading
+    at_scan_time: float = 1.0
 
 
 REBASE_TOL = 1e-3  # m and rad: an ODOM line that repeats the scan's pose (logs round to 1e-6)
@@ -285,11 +289,14 @@ def wheel_readings(tagged: list[tuple[str, LaserScan | OdometryPose]]) -> WheelR
         prev = np.append(-1, scan_at[:-1])
         has &= odo_at[np.maximum(before, 0)] > prev
     at[has] = odo[before[has]]
+    t_scan = np.array([tagged[i][1].stamp_ns for i in scan_at], np.int64)
+    # (a log whose stamps are too coarse to tell its scans apart says nothing of time)
+    timely = (has & (np.abs(t_odo[np.maximum(before, 0)] - t_scan) <= 1_000_000)
+              & np.append(True, np.diff(t_scan) != 0))
     if rebased:
         start = np.where((follows & at_pose)[:, None], first, at)
-        return WheelReadings(at, start, True, len(odo))
+        return WheelReadings(at, start, True, len(odo), _share(timely[1:]))
     # raw odometry: between the readings around the scan by time, where their stamps allow
-    t_scan = np.array([tagged[i][1].stamp_ns for i in scan_at], np.int64)
     both = has & (after < len(odo))
     k = np.flatnonzero(both)
     t0, t1 = t_odo[before[k]], t_odo[after[k]]
@@ -300,7 +307,12 @@ def wheel_readings(tagged: list[tuple[str, LaserScan | OdometryPose]]) -> WheelR
     step = p1 - p0
     step[:, 2] = (step[:, 2] + np.pi) % (2 * np.pi) - np.pi
     at[k] = p0 + w * step
-    return WheelReadings(at, at.copy(), False, len(odo))
+    timely[k] = True
+    return WheelReadings(at, at.copy(), False, len(odo), _share(timely[1:]))
+
+
+def _share(flags: np.ndarray) -> float:
+    return round(float(flags.mean()), 4) if len(flags) else 1.0
 
 
 class RepeatIndex:

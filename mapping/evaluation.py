@@ -52,6 +52,27 @@ def affine_fit(est: np.ndarray, ref: np.ndarray) -> dict:
             "stretch_axis_deg": float(np.degrees(np.arctan2(U[1, 0], U[0, 0])) % 180.0)}
 
 
+def odometry_model(odo: np.ndarray, ref: np.ndarray, min_step: float = 0.2) -> dict:
+    """The odometry's error between consecutive poses against the reference's, in the terms
+    the mapper calibrates (``odometry_calibration``): ``scale`` such that a reference step's
+    length is ``scale`` times the odometry's (least squares over steps of ``min_step`` metres
+    or more), ``drift_deg_per_m`` such that its turn is the odometry's less ``drift`` per
+    metre driven; and what neither explains, per step: ``turn_residual_deg_rms`` and
+    ``length_residual_m_rms`` (after the scale)."""
+    raw, true = relative(odo[:-1], odo[1:]), relative(ref[:-1], ref[1:])
+    d, dt = np.hypot(raw[:, 0], raw[:, 1]), np.hypot(true[:, 0], true[:, 1])
+    run = d >= min_step
+    scale = float(d[run] @ dt[run] / (d[run] @ d[run])) if run.any() else 1.0
+    turn = angle_diff(raw[:, 2], true[:, 2])         # odometry's turn less the reference's
+    drift = float(d @ turn / (d @ d)) if d @ d > 0 else 0.0
+    return {"scale": round(scale, 5), "drift_deg_per_m": round(float(np.degrees(drift)), 4),
+            "turn_residual_deg_rms": round(float(np.degrees(np.sqrt(np.mean(
+                (turn - drift * d) ** 2)))), 4) if len(d) else 0.0,
+            "length_residual_m_rms": round(float(np.sqrt(np.mean(
+                (scale * d[run] - dt[run]) ** 2))), 4) if run.any() else 0.0,
+            "steps": int(len(d))}
+
+
 def rpe(est: np.ndarray, ref: np.ndarray, distance: float = 1.0) -> dict:
     """Relative pose error over ``distance`` metres of (reference) travel: RMS of the
     difference between estimated and reference relative motions."""

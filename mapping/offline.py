@@ -18,6 +18,7 @@ from .evaluation import (
     apply_pose,
     ate,
     icp_agreement,
+    odometry_model,
     reference_check,
     revisit_pairs,
     rpe,
@@ -176,6 +177,9 @@ def build_map(scans: Sequence, odometry: np.ndarray, params: MapperParams | None
         odo = {**ate(odometry, R), **rpe(odometry, R)}
         report["odometry"] = {k: round(v, 4) if isinstance(v, float) else v
                               for k, v in odo.items()}
+        # the odometry's error in the calibration's terms (what odometry_calibration
+        # estimated without the reference)
+        report["odometry"]["model"] = odometry_model(odometry, R)
         # each scan's pose as the mapper gave it when the scan came in (what a daemon serves
         # the robot): later closures and the finishing pass have not corrected it yet
         report["online"] = {k: round(v, 4) for k, v in ate(online, R).items()}

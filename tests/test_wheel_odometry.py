@@ -10,8 +10,13 @@ import numpy as np
 import pytest
 from cgamap.daemon.cli import main
 from cgamap.drivers.carmen import read_scans, read_scans_and_wheels
-from cgamap.mapping.evaluation import ate
-from cgamap.mapping.odometry import compose_pose2d, pose_increments, relative
+from cgamap.mapping.evaluation import ate, odometry_model
+from cgamap.mapping.odometry import (
+    compose_pose2d,
+    integrate_increments,
+    pose_increments,
+    relative,
+)
 from cgamap.mapping.offline import log_odometry, wheel_steps
 from conftest import head_of_log, require_data
 
@@ -33,19 +38,23 @@ SCANS = np.array([[1.0, 2.0, 0.3], [1.9, 2.4, 0.5], [2.5, 3.3, 1.2]])
 WHEELS = np.array([[0.95, 0.02, 0.25], [0.80, 0.30, 0.62]])
 
 
-def _gmapping_log(path, gap: bool = False) -> None:
+def _gmapping_log(path, gap: bool = False, coarse: bool = False) -> None:
     """A log as GMapping writes it: each scan, then an ODOM line at its corrected pose, then
-    the wheels' readings from there, the last stamped with the next scan's time."""
-    lines = [_odom((0.0, 0.0, 0.0), 0.5)]  # the raw frame before the first scan
+    the wheels' readings from there, the last stamped with the next scan's time.  ``coarse``:
+    every stamp written as the same 6-digit number (as the MIT CSAIL log's are)."""
+    def t(v: float) -> float:
+        return 1.13486e9 if coarse else v
+
+    lines = [_odom((0.0, 0.0, 0.0), t(0.5))]  # the raw frame before the first scan
     for k, pose in enumerate(SCANS):
-        lines.append(_flaser(pose, 10.0 + k))
+        lines.append(_flaser(pose, t(10.0 + k)))
         if k == len(SCANS) - 1:
             break
         if gap and k == 0:
             continue  # no reading at all until the next scan
         lines.append(_odom(pose, 0.0))
         half = compose_pose2d(pose, WHEELS[k] / 2)
-        lines += [_odom(half, 10.4 + k), _odom(compose_pose2d(pose, WHEELS[k]), 11.0 + k)]
+        lines += [_odom(half, t(10.4 + k)), _odom(compose_pose2d(pose, WHEELS[k]), t(11.0 + k))]
         lines.append("NEFF 12.5\n")
     path.write_text("".join(lines))
 
@@ -54,7 +63,7 @@ def test_a_gmapping_log_gives_the_wheels_steps(tmp_path):
     log = tmp_path / "g.log"
     _gmapping_log(log)
     scans, w = read_scans_and_wheels(log)
-    assert len(scans) == 3 and w.rebased and w.readings == 7
+    assert len(scans) == 3 and w.rebased and w.readings == 7 and w.at_scan_time == 1.0
     steps, unknown = wheel_steps(w.at, w.start)
     assert unknown == 0
     np.testing.assert_allclose(steps, WHEELS, atol=2e-6)
@@ -78,6 +87,20 @@ def test_a_step_without_readings_is_unknown_and_counted(tmp_path):
     np.testing.assert_allclose(steps[1], WHEELS[1], atol=2e-6)
 
 
+def test_stamps_that_cannot_tell_the_scans_apart_are_said(tmp_path, capsys):
+    log = tmp_path / "g.log"
+    _gmapping_log(log, coarse=True)
+    scans, w = read_scans_and_wheels(log)
+    assert w.rebased and w.at_scan_time == 0.0
+    np.testing.assert_allclose(wheel_steps(w.at, w.start)[0], WHEELS, atol=2e-6)
+    assert main(["map", "build", "--log", str(log), "--out", str(tmp_path / "o"),
+                 "--odom-noise", "wheels"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 0% of the log's scans have an ODOM reading of their own time" in err
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["wheel_odometry"]["at_scan_time"] == 0.0
+
+
 def test_raw_readings_are_taken_at_the_scans_time(tmp_path):
     # odometry at 1 m/s along x, turning 0.1 rad/s, read every second; scans between readings
     # with odometry fields that say something else (they are not what `wheels` reads)
@@ -89,7 +112,7 @@ def test_raw_readings_are_taken_at_the_scans_time(tmp_path):
     log = tmp_path / "raw.log"
     log.write_text("".join(lines))
     scans, w = read_scans_and_wheels(log)
-    assert not w.rebased
+    assert not w.rebased and w.at_scan_time == 1.0
     np.testing.assert_allclose(w.at, [[1.5, 0.0, 0.15], [3.25, 0.0, 0.325]], atol=1e-9)
     steps, unknown = wheel_steps(w.at, w.start)
     assert unknown == 0
@@ -118,7 +141,7 @@ def test_the_intel_log_keeps_its_robots_odometry():
     longer by a few per cent and turning steadily one way, far from the corrected steps."""
     scans, w = read_scans_and_wheels(require_data(INTEL))
     assert len(scans) == len(read_scans(require_data(INTEL))) == 910
-    assert w.rebased and w.readings == 14541
+    assert w.rebased and w.readings == 14541 and w.at_scan_time == 1.0
     steps, unknown = wheel_steps(w.at, w.start)
     assert unknown == 0
     ref = np.array([s.pose_ref for s in scans])
@@ -142,10 +165,29 @@ def test_map_build_records_the_wheels(tmp_path):
     rep = json.loads((out / "report.json").read_text())
     assert rep["odom_noise"] == "wheels"
     assert rep["wheel_odometry"] == {"odom_lines": rep["wheel_odometry"]["odom_lines"],
-                                     "rebased": True, "unknown_steps": 0}
+                                     "rebased": True, "unknown_steps": 0, "at_scan_time": 1.0}
     # the wheels were what the mapper got (their dead reckoning is 10.8 m off the corrected
     # poses by then), and it maps with them: 0.094 m measured
     assert rep["odometry"]["ate_trans_m"] > 5.0
     assert rep["ate_trans_m"] < 0.15
     meta = json.loads((out / "map.json").read_text())["metadata"]
     assert meta["odom_noise"] == "wheels"
+
+
+def test_the_odometry_model_recovers_a_known_scale_and_drift():
+    rng = np.random.default_rng(3)
+    true = np.column_stack([rng.uniform(0.0, 1.0, 300), rng.normal(0, 0.02, 300),
+                            rng.normal(0, 0.4, 300)])
+    raw = true.copy()
+    raw[:, :2] *= 1.04                                   # wheels 4 % long
+    d = np.hypot(raw[:, 0], raw[:, 1])
+    raw[:, 2] += np.radians(-3.0) * d                    # and turning 3 deg a metre one way
+    raw[:, 2] += rng.normal(0, np.radians(1.0), 300)     # and 1 deg of noise a step
+    ref = integrate_increments(true, (1.0, 2.0, 0.3))
+    odo = integrate_increments(raw, (1.0, 2.0, 0.3))
+    m = odometry_model(odo, ref)
+    assert m["steps"] == 300
+    assert m["scale"] == pytest.approx(1 / 1.04, abs=1e-4)
+    assert m["drift_deg_per_m"] == pytest.approx(-3.0, abs=0.3)
+    assert m["turn_residual_deg_rms"] == pytest.approx(1.0, abs=0.15)
+    assert m["length_residual_m_rms"] < 1e-3
