@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .jit import kernel
 from .odometry import move_points
 
 
@@ -74,7 +75,103 @@ def scan_points(ranges, angle_min: float, angle_increment: float,
 def icp(src: ScanPoints, dst: ScanPoints, guess, params: IcpParams | None = None
         ) -> np.ndarray | None:
     """Pose (x, y, theta) of ``src``'s frame in ``dst``'s frame, started from ``guess``;
-    None when too few points pair up."""
+    None when too few points pair up.  Compiled (:func:`_icp_kernel`): the finishing pass
+    runs it on thousands of scan pairs; :func:`icp_numpy` is the same steps in numpy."""
+    P = params or IcpParams()
+    if len(src.points) < P.min_pairs or len(dst.points) < P.min_pairs:
+        return None
+    x = np.asarray(guess, dtype=float).copy()
+    ok = _icp_kernel(src.points, dst.points, dst.normals, dst.has_normal, x, P.max_gap,
+                     P.trim, P.scale, P.iterations, P.tolerance, P.min_pairs)
+    return x if ok else None
+
+
+@kernel
+def _icp_kernel(src, dst, normals, has, x, max_gap, trim, scale, iterations, tolerance,
+                min_pairs):
+    """:func:`icp_numpy` on arrays, ``x`` updated in place; False when too few points pair.
+    The nearest target point within ``max_gap`` comes from a grid of ``max_gap`` cells over
+    the target (the 3 x 3 cells around a point hold every point that near)."""
+    n, m = src.shape[0], dst.shape[0]
+    lo0, lo1 = dst[:, 0].min(), dst[:, 1].min()
+    nx = int((dst[:, 0].max() - lo0) / max_gap) + 1
+    ny = int((dst[:, 1].max() - lo1) / max_gap) + 1
+    cell = np.empty(m, np.int64)
+    for j in range(m):
+        cell[j] = int((dst[j, 0] - lo0) / max_gap) * ny + int((dst[j, 1] - lo1) / max_gap)
+    start = np.zeros(nx * ny + 1, np.int64)
+    for j in range(m):
+        start[cell[j] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(m, np.int64)
+    for j in range(m):
+        order[fill[cell[j]]] = j
+        fill[cell[j]] += 1
+    qx, qy = np.empty(n), np.empty(n)
+    pj = np.empty(n, np.int64)
+    e = np.empty(n)
+    gap2 = max_gap * max_gap
+    for _ in range(iterations):
+        c, s = np.cos(x[2]), np.sin(x[2])
+        k = 0
+        for i in range(n):
+            px = c * src[i, 0] - s * src[i, 1] + x[0]
+            py = s * src[i, 0] + c * src[i, 1] + x[1]
+            fx, fy = (px - lo0) / max_gap, (py - lo1) / max_gap
+            if fx < -1.0 or fy < -1.0 or fx >= nx + 1.0 or fy >= ny + 1.0:
+                continue
+            cx, cy = int(np.floor(fx)), int(np.floor(fy))
+            best, bj = gap2, -1
+            for ax in range(max(cx - 1, 0), min(cx + 2, nx)):
+                for ay in range(max(cy - 1, 0), min(cy + 2, ny)):
+                    a = ax * ny + ay
+                    for t in range(start[a], start[a + 1]):
+                        j = order[t]
+                        d2 = (px - dst[j, 0]) ** 2 + (py - dst[j, 1]) ** 2
+                        if d2 < best or (d2 == best and bj >= 0 and j < bj):
+                            best, bj = d2, j
+            if bj < 0 or not has[bj]:
+                continue
+            qx[k], qy[k], pj[k] = px, py, bj
+            e[k] = (px - dst[bj, 0]) * normals[bj, 0] + (py - dst[bj, 1]) * normals[bj, 1]
+            k += 1
+        if k < min_pairs:
+            return False
+        # numpy's quantile (linear) of |e| over the pairs: the trim's bar
+        a_e = np.sort(np.abs(e[:k]))
+        pos = (k - 1) * trim
+        f = int(np.floor(pos))
+        bar = a_e[f] if f + 1 >= k else a_e[f] + (pos - f) * (a_e[f + 1] - a_e[f])
+        bar = max(bar, 1e-3)
+        H = np.zeros((3, 3))
+        g = np.zeros(3)
+        for i in range(k):
+            if abs(e[i]) > bar:
+                continue
+            j = pj[i]
+            J0, J1 = normals[j, 0], normals[j, 1]
+            J2 = J1 * (qx[i] - x[0]) - J0 * (qy[i] - x[1])
+            w = 1.0 / (1.0 + (e[i] / scale) ** 2)
+            J = (J0, J1, J2)
+            for r in range(3):
+                g[r] += w * J[r] * e[i]
+                for q in range(3):
+                    H[r, q] += w * J[r] * J[q]
+        for r in range(3):
+            H[r, r] += 1e-9
+        dx = -np.linalg.solve(H, g)
+        x += dx
+        if np.max(np.abs(dx)) < tolerance:
+            break
+    x[2] = (x[2] + np.pi) % (2 * np.pi) - np.pi
+    return True
+
+
+def icp_numpy(src: ScanPoints, dst: ScanPoints, guess, params: IcpParams | None = None
+              ) -> np.ndarray | None:
+    """:func:`icp` in numpy with a k-d tree: the reference its kernel is tested against."""
     P = params or IcpParams()
     x = np.asarray(guess, dtype=float).copy()
     if len(src.points) < P.min_pairs or len(dst.points) < P.min_pairs:

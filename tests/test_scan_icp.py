@@ -78,3 +78,27 @@ def test_revisit_pairs_and_their_agreement():
     out = icp_agreement(scans, {"truth": truth, "shifted": shifted}, truth, pairs=pairs)
     assert out["truth"]["pairs"] == 12 and out["truth"]["trans_median_m"] < 0.005
     assert abs(out["shifted"]["trans_median_m"] - 0.10) < 0.01
+
+
+def test_the_compiled_icp_is_the_numpy_one():
+    """The kernel (grid instead of k-d tree, loops instead of arrays) against the numpy
+    steps: the same pose to rounding, from guesses off by centimetres and degrees, and the
+    same refusals."""
+    from cgamap.mapping.scan_icp import icp_numpy
+
+    rng = np.random.default_rng(5)
+    worst, both = 0.0, 0
+    for k in range(30):
+        p0 = np.array([*rng.uniform(-0.5, 0.5, 2), rng.uniform(-np.pi, np.pi)])
+        p1 = p0 + np.array([*rng.normal(0, 0.3, 2), rng.normal(0, 0.2)])
+        a, b = _pts(p0, 2 * k), _pts(p1, 2 * k + 1)
+        guess = relative(p0, p1) + rng.normal(0, [0.08, 0.08, 0.04])
+        got, ref = icp(b, a, guess), icp_numpy(b, a, guess)
+        assert (got is None) == (ref is None)
+        if got is not None:
+            both += 1
+            worst = max(worst, float(np.abs(got - ref).max()))
+    assert both >= 25 and worst < 1e-9
+    few = scan_points(np.full(30, 2.0), -0.5, 0.01)   # a flat stub: pairs, but too few
+    for f in (icp, icp_numpy):
+        assert f(few, _pts([0.0, 0.0, 0.0]), np.zeros(3)) is None
