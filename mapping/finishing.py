@@ -22,37 +22,12 @@ from .evaluation import ate
 from .jit import kernel
 from .line_adjust import AdjustParams, Contributions, adjust, associate
 from .matching import LineIndex
-from .odometry import compose_pose2d, move_points, relative, step_calibration
+from .odometry import move_points, relative, step_calibration
 from .odometry import wrap_angle as wrap
 from .posegraph import EdgeArrays, PoseGraph
-from .scan_icp import IcpParams, ScanPoints, icp, scan_points
 
 if TYPE_CHECKING:
     from .slam2d import LoopParams
-
-
-@dataclass(frozen=True)
-class FillParams:
-    """Raw-point ICP along the weak direction of near-consecutive scan pairs (the finishing
-    pass, :func:`fill_weak`).  Two scans a step or three apart often share one family of
-    walls, and their segments then say nothing along it (a pair at the mouth of a dead end
-    matched one wall and a door jamb too short to be a segment); the wheels decide there.
-    Raw-point ICP sees the corners and the clutter the segments leave out.  Where it gives
-    the same answer both ways, the pair's edge takes ICP's translation along its weakest
-    direction only, with ``sigma``; the walls keep the rest.
-
-    Measured on Intel (seeds / 1e-9 jitters 0-15, mean ATE): ``high`` noise 0.0583 -> 0.0560
-    m; the robot's own wheel odometry (``--odom-noise wheels``) 0.0887 -> 0.0767 m, worst
-    run 0.143 -> 0.106 m.  Pairs of consecutive scans only (``previous`` 1): no gain (0.0575
-    and 0.0892 m over 0-7)."""
-
-    enabled: bool = True
-    previous: int = 3          # pairs of nodes at most this many apart in the graph's order
-    weak_std: float = 0.1      # whose translation, rotation marginalised, is this uncertain
-    # (m, std) along its weakest direction; ICP's answer along it gets this std (m)
-    sigma: float = 0.03
-    both_ways: tuple[float, float] = (0.02, 0.3)   # ICP forth and back agree: (m, deg)
-    max_move: tuple[float, float] = (0.4, 3.0)     # and moves the pair at most (m, deg)
 
 
 def pad_segments(segs: list[tuple[np.ndarray, np.ndarray]],
@@ -127,7 +102,6 @@ class NeighbourParams:
         gates=(0.6, 0.4, 0.25, 0.15, 0.1, 0.06),
         angle_gates_deg=(15.0, 10.0, 7.0, 5.0, 3.0, 2.5), extrapolation=0.1,
         min_length=0.5))
-    fill: FillParams = field(default_factory=FillParams)
     # the odometry calibration re-estimated from each round's consecutive scan pairs
     # (:func:`.odometry.step_calibration`), and the scan-to-map steps re-predicted with it
     # (:func:`_recalibrate`): along a corridor a step is the odometry's, and the online
@@ -208,12 +182,11 @@ def round_params(NP: NeighbourParams, r: int) -> NeighbourParams:
 
 def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
                       pairs: np.ndarray | None = None,
-                      stop=None, points: ScanPointCache | None = None) -> EdgeArrays:
+                      stop=None) -> EdgeArrays:
     """The finishing pass's matching (:class:`NeighbourParams`): scan i's segments against
     scan j's for every neighbour pair (solved in batches, :func:`.correction.correct_batch`);
     the good matches as edges (:class:`.posegraph.EdgeArrays`, i the earlier scan of each
-    pair) carrying the matches' own information, with ``points`` (the nodes' raw scans)
-    their weak directions filled by ICP (:func:`fill_weak`).
+    pair) carrying the matches' own information.
     ``pairs`` defaults to :func:`neighbour_pairs`; ``stop()`` true between batches abandons
     the pass (returns [])."""
     pairs = neighbour_pairs(X, scans, NP) if pairs is None else pairs
@@ -246,64 +219,7 @@ def neighbour_matches(X: np.ndarray, scans: list, NP: NeighbourParams,
     # arrays, not an object per edge: a 12 000-scan pass finds 400 000 edges.  In the
     # graph's edge order, the pairs' order (by later node, then earlier)
     E = EdgeArrays.concat(found)
-    E = E.select(np.lexsort((E.i, E.j)))
-    if points is not None and NP.fill.enabled:
-        E = fill_weak(E, X, points, NP.fill)
-    return E
-
-
-class ScanPointCache:
-    """The nodes' raw scans as ICP points (:func:`.scan_icp.scan_points`), made on first
-    use: ``rays`` per node (ranges, angle_min, angle_increment), or None for a node without
-    (its pairs are left as the walls matched them)."""
-
-    def __init__(self, rays: list, params: IcpParams | None = None):
-        self.rays, self.params = rays, params or IcpParams()
-        self._made: dict[int, ScanPoints | None] = {}
-
-    def __getitem__(self, node: int) -> ScanPoints | None:
-        if node not in self._made:
-            ray = self.rays[node] if 0 <= node < len(self.rays) else None
-            self._made[node] = None if ray is None else scan_points(*ray, self.params)
-        return self._made[node]
-
-
-def fill_weak(E: EdgeArrays, X: np.ndarray, points: ScanPointCache, F: FillParams
-              ) -> EdgeArrays:
-    """``E`` with the weak direction of its near-consecutive pairs' translations taken from
-    raw-point ICP (:class:`FillParams`); the other edges, and pairs ICP does not settle
-    (too few points, the two ways disagree, or it moves the pair too far from ``X``), as
-    they were.  ICP starts from the pair's relative pose in ``X``."""
-    z, info = E.z.copy(), E.info.copy()
-    t_ok, r_ok = F.both_ways[0], np.radians(F.both_ways[1])
-    t_max, r_max = F.max_move[0], np.radians(F.max_move[1])
-    for e in np.flatnonzero((E.j > E.i) & (E.j - E.i <= F.previous)):
-        I = info[e]
-        # the translation's information with the rotation marginalised (Schur complement)
-        M = I[:2, :2] - np.outer(I[:2, 2], I[2, :2]) / max(I[2, 2], 1e-12)
-        w, v = np.linalg.eigh(0.5 * (M + M.T))
-        if w[0] > F.weak_std ** -2:
-            continue
-        a, b = points[int(E.i[e])], points[int(E.j[e])]
-        if a is None or b is None:
-            continue
-        guess = relative(X[E.i[e]], X[E.j[e]])
-        fwd = icp(b, a, guess, points.params)
-        if fwd is None:
-            continue
-        back = icp(a, b, relative(fwd, np.zeros(3)), points.params)
-        if back is None:
-            continue
-        loop = compose_pose2d(fwd, back)
-        if np.hypot(loop[0], loop[1]) > t_ok or abs(wrap(loop[2])) > r_ok:
-            continue
-        if (np.hypot(*(fwd[:2] - guess[:2])) > t_max
-                or abs(wrap(fwd[2] - guess[2])) > r_max):
-            continue
-        u = v[:, 0]
-        z[e, :2] += u * (u @ (fwd[:2] - z[e, :2]))
-        info[e, :2, :2] += np.outer(u, u) / F.sigma ** 2
-    return EdgeArrays(E.i, E.j, z, info, E.robust)
+    return E.select(np.lexsort((E.i, E.j)))
 
 
 def _turned(res, src_a: np.ndarray, src_b: np.ndarray, index: LineIndex, pred: np.ndarray,
@@ -446,7 +362,6 @@ class FinishJob:
     steps: np.ndarray | None = None  # per node: raw odometry step and its calibration (5,)
     shares: np.ndarray | None = None  # ... and the share of the prediction it kept (3, 3)
     calibration: dict = field(default_factory=dict)  # the re-estimated one, when found
-    rays: list = field(default_factory=list)  # per node: its raw scan, for FillParams
 
     @property
     def nodes(self) -> int:
@@ -470,7 +385,6 @@ class FinishJob:
                 g.optimize(fixed=self.anchors)
                 self.edges = swept
         moved = np.inf  # how far the last round moved the map (m)
-        points = ScanPointCache(self.rays) if len(self.rays) == self.nodes else None
         for r in range(max(NP.rounds, NP.max_rounds) if NP.rounds else 0):
             if r >= NP.rounds and moved < NP.converged:
                 break
@@ -478,7 +392,7 @@ class FinishJob:
             X = np.array(g.poses)
             pairs = neighbour_pairs(X, self.scans, rp)
             self.pairs += len(pairs)
-            got = neighbour_matches(X, self.scans, rp, pairs, stop, points)
+            got = neighbour_matches(X, self.scans, rp, pairs, stop)
             if stop is not None and stop():
                 self.edges, self.poses = EdgeArrays.empty(), None
                 return self

@@ -75,8 +75,10 @@ def scan_points(ranges, angle_min: float, angle_increment: float,
 def icp(src: ScanPoints, dst: ScanPoints, guess, params: IcpParams | None = None
         ) -> np.ndarray | None:
     """Pose (x, y, theta) of ``src``'s frame in ``dst``'s frame, started from ``guess``;
-    None when too few points pair up.  Compiled (:func:`_icp_kernel`): the finishing pass
-    runs it on thousands of scan pairs; :func:`icp_numpy` is the same steps in numpy."""
+    None when too few points pair up.  Compiled (:func:`_icp_kernel`): a build's report
+    runs it on a thousand scan pairs twice (:func:`.evaluation.icp_agreement`), 0.2 ms a
+    pair on the Intel log's scans against 2.7 ms for :func:`icp_numpy`, the same steps in
+    numpy."""
     P = params or IcpParams()
     if len(src.points) < P.min_pairs or len(dst.points) < P.min_pairs:
         return None
@@ -159,9 +161,7 @@ def _icp_kernel(src, dst, normals, has, x, max_gap, trim, scale, iterations, tol
                 g[r] += w * J[r] * e[i]
                 for q in range(3):
                     H[r, q] += w * J[r] * J[q]
-        for r in range(3):
-            H[r, r] += 1e-9
-        dx = -np.linalg.solve(H, g)
+        dx = -np.linalg.solve(H + 1e-9 * np.eye(3), g)
         x += dx
         if np.max(np.abs(dx)) < tolerance:
             break

@@ -258,9 +258,6 @@ class Mapper:
         self.drift_per_m = 0.0   # learnt odometry heading drift (rad/m)
         self.scale = 1.0         # learnt ratio of true to odometry distance
         self.scans: list[tuple[np.ndarray, np.ndarray]] = []  # per node: segments a, b
-        # ... and its raw scan (ranges as float32, angle_min, angle_increment), for the
-        # finishing pass's ICP along weak directions (NeighbourParams.fill)
-        self.rays: list[tuple[np.ndarray, float, float]] = []
         # contributions (node, a, b) of segments aged out as glimpses, by node: a closure's
         # submap of that place still has them (aging judges what the map keeps for good;
         # a dense run's short-lived pieces were all a closure had of its loop's start)
@@ -360,7 +357,7 @@ class Mapper:
             self._tracked = None
             self._recent.clear()  # a new chain: the last scans' poses are not tied to it
             self._remember(i, None, self.travel[i], ranges, angle_min, angle_increment)
-            self._merge(seg, i, None, abs(angle_increment), (ranges, angle_min, angle_increment))
+            self._merge(seg, i, None, abs(angle_increment))
             return StepResult(pose, len(seg), None, node=self.dropped + i)
         raw = relative(self.last_odom, odom_l)
         d_odo = float(np.hypot(raw[0], raw[1]))
@@ -446,7 +443,7 @@ class Mapper:
         n_seg = len(seg)
         seg = self._without_movers(i, seg)
         self._remember(i, None, self.travel[i], ranges, angle_min, angle_increment)
-        self._merge(seg, i, near, abs(angle_increment), (ranges, angle_min, angle_increment))
+        self._merge(seg, i, near, abs(angle_increment))
         pose = self.graph.poses[i].copy()
         if P.max_nodes and self.count > P.max_nodes:
             self.compact(max(P.max_nodes * 9 // 10, 1))
@@ -566,7 +563,6 @@ class Mapper:
         self.odo_step = Column((7,), float, self.odo_step[cut:])
         self.odo_cov = Column((3, 3), float, self.odo_cov[cut:])
         self.scans = self.scans[cut:]  # the finishing pass's segments go with their nodes
-        self.rays = self.rays[cut:]
         # edge numbers of the neighbour block shift with the edges dropped before them
         n0, n1 = self._neighbour_block
         self._neighbour_block = (int(np.searchsorted(kept, n0)), int(np.searchsorted(kept, n1)))
@@ -584,15 +580,10 @@ class Mapper:
         return cut
 
     def _merge(self, seg: Segments, node: int, near: np.ndarray | None,
-               beam_step: float | None = None, ray: tuple | None = None) -> None:
+               beam_step: float | None = None) -> None:
         P = self.params
         if self.keep_scans and len(self.scans) == node:
             self.scans.append((seg.a, seg.b))
-            if P.neighbours.fill.enabled and ray is not None:
-                self.rays.append((np.asarray(ray[0], np.float32), float(ray[1]),
-                                  float(ray[2])))
-            else:
-                self.rays.append(None)
         M = laser_motor(self.graph.poses[node])
         seg_g = segments_to_global(seg, M)
         integrate(self.map, seg_g, node, P.map, seg_l=seg, node=node, candidates=near)
@@ -912,8 +903,7 @@ class Mapper:
                          shares=prediction_shares(self.odo_cov.array(), self.params.correction,
                                                   self.odo_step[:, 5], self.odo_step[:, 6]),
                          lines=Contributions.of(self.map) if AP.enabled else None,
-                         adjust=AP if AP.enabled else None,
-                         rays=list(self.rays) if kept else [])
+                         adjust=AP if AP.enabled else None)
 
     def apply_finish(self, job: FinishJob) -> dict:
         """Adopt a computed :class:`FinishJob`: its edges (if it found any) replace the
