@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .jit import kernel
+from .jit import inverse3_into, kernel
 from .matching import LineIndex, line_normals, match_index, near_box, near_segments, pair_cost
 from .odometry import move_points
 from .segments import Segments
@@ -125,21 +125,8 @@ def _inverse3(H: np.ndarray) -> np.ndarray:
     """Inverses of symmetric (P, 3, 3) matrices (a lone 3x3 costs numpy's inv more in the
     call than in the arithmetic)."""
     out = np.empty_like(H)
-    _inverse3_into(H, out)
+    inverse3_into(H, out)
     return out
-
-
-@kernel
-def _inverse3_into(H, out):
-    for p in range(H.shape[0]):
-        a, b, c = H[p, 0, 0], H[p, 0, 1], H[p, 0, 2]
-        d, e, f = H[p, 1, 1], H[p, 1, 2], H[p, 2, 2]
-        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-        D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-        det = a * A + b * B + c * C
-        out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
-        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, D / det, E / det
-        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, E / det, F / det
 
 
 @kernel
@@ -232,7 +219,7 @@ def _gauss_newton(sa, sb, centre, half, n, c, pred, w_prior, gates, sin_gates, v
                 Hi[0, d] = H[d]
                 Hi[0, d, d] += w_prior[p, d]
                 H_out[p, d] = Hi[0, d]
-            _inverse3_into(Hi, Hi)
+            inverse3_into(Hi, Hi)
             d0 = Hi[0, 0, 0] * g0 + Hi[0, 0, 1] * g1 + Hi[0, 0, 2] * g2
             d1 = Hi[0, 1, 0] * g0 + Hi[0, 1, 1] * g1 + Hi[0, 1, 2] * g2
             d2 = Hi[0, 2, 0] * g0 + Hi[0, 2, 1] * g1 + Hi[0, 2, 2] * g2

@@ -6,8 +6,9 @@ the cost (about 2 ms per Intel scan on the 2-core machine, most of it call overh
 few loops that carry that work are compiled; everything else stays numpy.  Relocalisation
 compiles its candidate counts, sweeps and verification for the opposite reason: many
 thousand candidates, whose (candidates x points) temporaries cost more than the reads.
-This module holds the decorator (:func:`kernel`), the one sort the kernels share
-(:func:`stable_argsort`) and the warm-up that compiles them all (:func:`warm_up`).
+This module holds the decorator (:func:`kernel`), the one sort and the 3 x 3 inverse the
+kernels share (:func:`stable_argsort`, :func:`inverse3_into`) and the warm-up that compiles
+them all (:func:`warm_up`).
 
 Compiled code is cached on disk next to the module (numba's ``cache=True``), or under
 ``NUMBA_CACHE_DIR`` when set (the systemd unit points it at the service's cache
@@ -68,6 +69,21 @@ def stable_argsort(x):
         idx, tmp = tmp, idx
         width *= 2
     return idx
+
+
+@kernel
+def inverse3_into(H, out):
+    """Inverses of symmetric (P, 3, 3) matrices into ``out`` (which may be ``H``), by
+    cofactors: a kernel's 3 x 3 solve without compiling numpy's linear algebra."""
+    for p in range(H.shape[0]):
+        a, b, c = H[p, 0, 0], H[p, 0, 1], H[p, 0, 2]
+        d, e, f = H[p, 1, 1], H[p, 1, 2], H[p, 2, 2]
+        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+        D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+        det = a * A + b * B + c * C
+        out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
+        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, D / det, E / det
+        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, E / det, F / det
 
 
 def warm_up() -> float:

@@ -11,11 +11,12 @@ raw ranges say (:func:`.evaluation.icp_agreement`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .jit import kernel
+from .jit import inverse3_into, kernel, stable_argsort
 from .odometry import move_points
 
 
@@ -36,13 +37,17 @@ class IcpParams:
 
 @dataclass
 class ScanPoints:
-    """A scan's points in its laser frame, their unit normals and where a normal exists,
-    with a k-d tree for pairing."""
+    """A scan's points in its laser frame, their unit normals and where a normal exists;
+    the k-d tree :func:`icp_numpy` pairs them with is made on first use (the compiled
+    :func:`icp` has its own grid)."""
 
     points: np.ndarray
     normals: np.ndarray
     has_normal: np.ndarray
-    tree: cKDTree
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.points) if len(self.points) else cKDTree(np.zeros((1, 2)))
 
 
 def scan_points(ranges, angle_min: float, angle_increment: float,
@@ -69,7 +74,7 @@ def scan_points(ranges, angle_min: float, angle_increment: float,
         w, v = np.linalg.eigh(cov)                                  # ascending
         normals = v[:, :, 0]
         has = (cnt >= P.min_neighbours) & (w[:, 0] <= P.flatness * np.maximum(w[:, 1], 1e-12))
-    return ScanPoints(pts, normals, has, cKDTree(pts) if n else cKDTree(np.zeros((1, 2))))
+    return ScanPoints(pts, normals, has)
 
 
 def icp(src: ScanPoints, dst: ScanPoints, guess, params: IcpParams | None = None
@@ -142,12 +147,13 @@ def _icp_kernel(src, dst, normals, has, x, max_gap, trim, scale, iterations, tol
         if k < min_pairs:
             return False
         # numpy's quantile (linear) of |e| over the pairs: the trim's bar
-        a_e = np.sort(np.abs(e[:k]))
+        a_e = np.abs(e[:k])
+        a_e = a_e[stable_argsort(a_e)]
         pos = (k - 1) * trim
         f = int(np.floor(pos))
         bar = a_e[f] if f + 1 >= k else a_e[f] + (pos - f) * (a_e[f + 1] - a_e[f])
         bar = max(bar, 1e-3)
-        H = np.zeros((3, 3))
+        H = np.zeros((1, 3, 3))
         g = np.zeros(3)
         for i in range(k):
             if abs(e[i]) > bar:
@@ -160,10 +166,16 @@ def _icp_kernel(src, dst, normals, has, x, max_gap, trim, scale, iterations, tol
             for r in range(3):
                 g[r] += w * J[r] * e[i]
                 for q in range(3):
-                    H[r, q] += w * J[r] * J[q]
-        dx = -np.linalg.solve(H + 1e-9 * np.eye(3), g)
-        x += dx
-        if np.max(np.abs(dx)) < tolerance:
+                    H[0, r, q] += w * J[r] * J[q]
+        for r in range(3):
+            H[0, r, r] += 1e-9
+        inverse3_into(H, H)
+        moved = 0.0
+        for r in range(3):
+            d = -(H[0, r, 0] * g[0] + H[0, r, 1] * g[1] + H[0, r, 2] * g[2])
+            x[r] += d
+            moved = max(moved, abs(d))
+        if moved < tolerance:
             break
     x[2] = (x[2] + np.pi) % (2 * np.pi) - np.pi
     return True
