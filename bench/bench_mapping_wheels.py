@@ -44,7 +44,8 @@ def _log(path, jitters, relocalize: bool) -> dict:
         out["builds"][f"jitter{j}"] = {**{k: rep[k] for k in KEYS},
                                        "odometry_calibration": rep.get("odometry_calibration"),
                                        "online_ate_m": rep["online"]["ate_trans_m"]}
-        first = first or res
+        if first is None:
+            first = res
     ates = [b["ate_trans_m"] for b in out["builds"].values()]
     out["ate_m"] = {"mean": round(float(np.mean(ates)), 4), "min": min(ates), "max": max(ates)}
     if relocalize:

@@ -280,7 +280,7 @@ def wheel_readings(tagged: list[tuple[str, LaserScan | OdometryPose]]) -> WheelR
                     for k, m in tagged if k != "ODOM"], float).reshape(-1, 3)
     first = odo[np.minimum(after, len(odo) - 1)] if len(odo) else np.full((n, 3), np.nan)
     d = np.abs(first - own)
-    d[:, 2] = np.abs((d[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+    d[:, 2] = np.abs(_wrap(d[:, 2]))
     at_pose = follows & (d.max(axis=1) <= REBASE_TOL)
     rebased = bool(follows.sum() and at_pose.sum() >= 0.9 * follows.sum())
     at = np.full((n, 3), np.nan)
@@ -305,10 +305,14 @@ def wheel_readings(tagged: list[tuple[str, LaserScan | OdometryPose]]) -> WheelR
     w = ((t_scan[k] - t0) / (t1 - t0))[:, None]
     p0, p1 = odo[before[k]], odo[after[k]]
     step = p1 - p0
-    step[:, 2] = (step[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    step[:, 2] = _wrap(step[:, 2])
     at[k] = p0 + w * step
     timely[k] = True
     return WheelReadings(at, at.copy(), False, len(odo), _share(timely[1:]))
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def _share(flags: np.ndarray) -> float:
