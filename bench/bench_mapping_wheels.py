@@ -7,7 +7,8 @@ reference steps in the calibration's terms (``evaluation.odometry_model``) besid
 presets', and builds with the wheels.  A build's outcome hangs on discrete decisions (which
 loop closures, which slips), so the Intel build is repeated with the odometry moved by 1e-9
 (``jitter`` seeds; 0 is ``map build`` itself): the spread is what one input can give.
-On CSAIL the readings are not of the scans' times (``at_scan_time``), so its wheel steps miss
+The Intel builds are repeated with far closure jumps held for a second scan
+(``builds_confirm_jump_1m``).  On CSAIL the readings are not of the scans' times (``at_scan_time``), so its wheel steps miss
 up to a reading's interval of motion each: one build, to show what that does."""
 
 from __future__ import annotations
@@ -23,10 +24,13 @@ KEYS = ("ate_trans_m", "ate_rot_deg", "rpe_trans_m", "rpe_rot_deg", "loop_closur
         "slips_recovered", "ms_per_scan_median")
 
 
-def _log(path, jitters, relocalize: bool) -> dict:
+def _log(path, jitters, relocalize: bool, held: bool = False) -> dict:
+    from dataclasses import replace
+
     from cgamap.drivers.carmen import read_scans_and_wheels
     from cgamap.mapping.evaluation import odometry_model
     from cgamap.mapping.offline import build_map, log_odometry, relocalize_trials
+    from cgamap.mapping.slam2d import LoopParams, MapperParams
 
     scans, w = read_scans_and_wheels(path)
     ref = np.array([s.pose_ref for s in scans], float)
@@ -52,6 +56,21 @@ def _log(path, jitters, relocalize: bool) -> dict:
         out["relocalize_jitter0"] = relocalize_trials(
             first.map, scans, 200, seed=0, alignment=first.report["alignment_to_reference"],
             also={"vs_map_trajectory": first.poses})
+    if held:
+        # far jumps held for a second scan (``LoopParams.confirm_jump``, off by default):
+        # the same inputs; see docs/mapping-2d.md, *A far jump held for a second scan*
+        P = MapperParams(loop=replace(LoopParams(), confirm_jump=1.0))
+        out["builds_confirm_jump_1m"] = {}
+        for j in jitters:
+            o = odo + np.random.default_rng(j).standard_normal(odo.shape) * 1e-9 if j else odo
+            rep = build_map(scans, o, P).report
+            out["builds_confirm_jump_1m"][f"jitter{j}"] = {
+                "ate_trans_m": rep["ate_trans_m"], "online_ate_m": rep["online"]["ate_trans_m"],
+                **{k: v for k, v in rep["closure_attempts"].items()
+                   if k.startswith("held") or k == "witnessed"}}
+        ates = [b["ate_trans_m"] for b in out["builds_confirm_jump_1m"].values()]
+        out["ate_m_confirm_jump_1m"] = {"mean": round(float(np.mean(ates)), 4),
+                                        "min": min(ates), "max": max(ates)}
     return out
 
 
@@ -59,7 +78,7 @@ def run() -> dict:
     from conftest import data_dir
 
     out: dict = {}
-    out["intel"] = missing() or _log(data_dir() / LOG, JITTERS, relocalize=True)
+    out["intel"] = missing() or _log(data_dir() / LOG, JITTERS, relocalize=True, held=True)
     out["csail"] = missing_extra(CSAIL) or _log(extra_dir() / CSAIL, (0,), relocalize=False)
     return out
 

@@ -302,3 +302,122 @@ def test_after_long_drift_the_whole_region_is_searched():
     assert np.hypot(err[0], err[1]) < 0.1 and abs(err[2]) < 0.01, err
     off, _, _ = _drifted_return(replace(LoopParams(), every=1, region_reach=0.0))
     assert off.loop_stats["region_tried"] == 0
+
+
+def _straight_run(n: int = 40) -> Mapper:
+    """A mapper whose graph is n nodes 0.5 m apart along x (no edges yet)."""
+    from cgamap.mapping.posegraph import Column, PoseGraph
+
+    m = Mapper(MapperParams(neighbours=NeighbourParams(enabled=False),
+                            loop=replace(LoopParams(), confirm_jump=1.0)))
+    m.graph = PoseGraph(poses=[(0.5 * k, 0.0, 0.0) for k in range(n)])
+    m.travel = Column((), float, 0.5 * np.arange(n))
+    return m
+
+
+def _closure(m: Mapper, j: int, i: int, slide: float):
+    """Closure j -> i as a relocalisation that slid node i by ``slide`` m along x: (z, guess)."""
+    X = m.poses
+    guess = relative(X[j], X[i])
+    return guess + np.array([slide, 0.0, 0.0]), guess
+
+
+def _loops(m: Mapper) -> list[tuple[int, int]]:
+    g = m.graph
+    return [(int(a), int(b)) for a, b, lp in zip(g.ei, g.ej, g.loop, strict=True) if lp]
+
+
+def test_a_far_jump_waits_for_a_later_scan_that_agrees():
+    """``LoopParams.confirm_jump``: a closure that would slide the pose 2.5 m after 10 m of
+    travel is held; another closure of the same scan that agrees joins it; a later scan's
+    closure that puts the robot where the held one does (after the chain's own 1.5 m) adds
+    all three."""
+    m = _straight_run()
+    assert m._take_closure(0, 20, *_closure(m, 0, 20, 2.5)) == 0
+    assert m._take_closure(4, 20, *_closure(m, 4, 20, 2.5)) == 0
+    assert _loops(m) == [] and m.loop_stats["held"] == 2
+    assert m._take_closure(6, 23, *_closure(m, 6, 23, 2.5)) == 3
+    assert _loops(m) == [(0, 20), (4, 20), (6, 23)]
+    assert m.loop_stats["held_confirmed"] == 2 and m.loop_stats["held_dropped"] == 0
+    assert m.last_loop == 23 and m.pending
+
+
+def test_a_far_jump_that_a_later_scan_contradicts_is_dropped():
+    """The later scan's closure finds the chain where it was: the held closure goes and the
+    new one is added; so does a held closure that no later scan confirms within
+    ``hold_nodes``, and one that a closure of the same scan contradicts (that one is then
+    held in its turn)."""
+    m = _straight_run()
+    assert m._take_closure(0, 20, *_closure(m, 0, 20, 2.5)) == 0
+    assert m._take_closure(6, 23, *_closure(m, 6, 23, 0.05)) == 1
+    assert _loops(m) == [(6, 23)] and not m._held and m.loop_stats["held_dropped"] == 1
+    m = _straight_run()
+    m._take_closure(0, 20, *_closure(m, 0, 20, 2.5))
+    m._expire_held(20 + m.params.loop.hold_nodes)
+    assert m._held and m.loop_stats["held_dropped"] == 0
+    m._expire_held(21 + m.params.loop.hold_nodes)
+    assert not m._held and m.loop_stats["held_dropped"] == 1 and _loops(m) == []
+    m = _straight_run()
+    m._take_closure(0, 20, *_closure(m, 0, 20, 2.5))
+    assert m._take_closure(4, 20, *_closure(m, 4, 20, -2.5)) == 0
+    assert m.loop_stats["held_dropped"] == 1 and len(m._held) == 1 and _loops(m) == []
+
+
+def test_a_jump_the_drift_allows_is_taken_at_once():
+    """Under ``confirm_jump`` plus ``drift_jump`` of the travel since the chain was tied, a
+    closure is added as it comes: 2.5 m after 100 m untied (1 + 3 m allowed), a small one
+    after 10 m; and with ``confirm_jump`` 0 (the default) nothing is held."""
+    m = _straight_run()
+    m.travel[20] = 100.0
+    assert m._take_closure(0, 20, *_closure(m, 0, 20, 2.5)) == 1
+    m = _straight_run()
+    assert m._take_closure(0, 20, *_closure(m, 0, 20, 0.5)) == 1
+    m = _straight_run()
+    m.params = replace(m.params, loop=LoopParams())
+    assert m._take_closure(0, 20, *_closure(m, 0, 20, 2.5)) == 1 and _loops(m) == [(0, 20)]
+
+
+def test_a_far_jump_an_earlier_scan_confirms_is_taken_at_once():
+    """The simulated campus (nothing repeats) driven 60 m, then two scans back at node 6's
+    place, 0.6 m apart, the chain's poses of both slid 3.5 m (more than the 1 + 3 % of 55 m
+    a jump may undo untied).  The closure of the second is held, and the first, relocalised
+    in the same submap from where the chain has it, puts the robot where the held one does:
+    the closure is added at once (a sparse log's drift grows while it waits), and it is the
+    true pose.  With the first scan's pose not slid, the two disagree and nothing is added."""
+    from cgamap.drivers.sim.scanlog import simulated_scans
+    from cgamap.mapping.segments import extract_segments
+
+    world = get_world("campus")
+    scans = simulated_scans(world, laps=0.31, period=1.0)[:60]
+    truth = np.array([s.pose_ref for s in scans])
+    back = [truth[6] + np.array([0.3, -0.2, 0.2]), truth[6] + np.array([0.9, -0.2, 0.2])]
+    slide = np.array([3.5, 3.5, 0.0])
+    for slid_first in (True, False):
+        m = Mapper(MapperParams(loop=replace(LoopParams(), enabled=False),
+                                neighbours=NeighbourParams(enabled=False),
+                                node_travel=0.0, node_turn=0.0), initial_pose=truth[0])
+        extra = [scan(world, b, n=180, sigma=0.01, max_range=80.0) for b in back]
+        odo = [*truth, *back]
+        for sc, o in zip([*scans, *extra], odo, strict=True):
+            m.step(sc.ranges, sc.angle_min, sc.angle_increment, o)
+        i = m.count - 1
+        for node in (i - 1, i) if slid_first else (i,):
+            m.graph.poses[node] = m.graph.poses[node] + slide
+        m.params = replace(m.params, loop=replace(LoopParams(), every=1, confirm_jump=1.0))
+        seg = extract_segments(extra[1].ranges, extra[1].angle_min, extra[1].angle_increment,
+                               m.params.segments)
+        m._closure_by_tracking = lambda *a: None
+        n_loops = len(_loops(m))
+        m._close_loops(i, seg, 0.0)
+        st = m.loop_stats
+        if slid_first:
+            assert st["held"] >= 1 and st["witnessed"] == 1, {k: v for k, v in st.items() if v}
+            got = [(a, b) for a, b in _loops(m)[n_loops:]]
+            assert got and all(b == i for _, b in got), got
+            k = len(m.graph.ei) - 1
+            j = int(m.graph.ei[k])
+            err = relative(relative(np.vstack([truth, back])[j], back[1]), m.graph.z[k])
+            assert np.hypot(err[0], err[1]) < 0.1 and abs(err[2]) < 0.01, err
+        else:
+            assert st["held_dropped"] >= 1 and len(_loops(m)) == n_loops, {
+                k: v for k, v in st.items() if v}
