@@ -8,8 +8,9 @@ presets', and builds with the wheels.  A build's outcome hangs on discrete decis
 loop closures, which slips), so the Intel build is repeated with the odometry moved by 1e-9
 (``jitter`` seeds; 0 is ``map build`` itself): the spread is what one input can give.
 The Intel builds are repeated with far closure jumps held for a second scan
-(``builds_confirm_jump_1m``).  On CSAIL the readings are not of the scans' times (``at_scan_time``), so its wheel steps miss
-up to a reading's interval of motion each: one build, to show what that does."""
+(``builds_confirm_jump_1m``).  On CSAIL the readings are not of the scans' times
+(``at_scan_time``), so its wheel steps miss up to a reading's interval of motion each:
+one build, to show what that does."""
 
 from __future__ import annotations
 
