@@ -776,6 +776,7 @@ class Mapper:
         return bool(np.hypot(d[0], d[1]) <= st and abs(d[2]) <= sr)
 
     def _expire_held(self, i: int) -> None:
+        """Drop held closures that no later scan confirmed within ``hold_nodes`` of node i."""
         if self._held and i - self._held[0][1] > self.params.loop.hold_nodes:
             self.loop_stats["held_dropped"] += len(self._held)
             self._held = []
