@@ -718,8 +718,7 @@ class Mapper:
             else:
                 return self._confirm(j, i, z, guess)
         jump = float(np.hypot(*relative(guess, z)[:2]))
-        if LP.confirm_jump > 0 and jump > LP.confirm_jump + LP.drift_jump * float(
-                self.travel[i] - self.travel[max(j, self.last_loop, 0)]):
+        if LP.confirm_jump > 0 and jump > LP.confirm_jump + LP.drift_jump * self._untied(i, j):
             self.loop_stats["held"] += 1
             self._held = [(j, i, z, guess)]
             witness = self._earlier_witness(j, i)
@@ -835,19 +834,22 @@ class Mapper:
         # map (by any closure), not since the earlier visit: on Intel the travel since the
         # visit (120 m) let a closure slide a corridor scan 1.1 m from a pose tied 12 scans
         # before, that matched its submap exactly as well
-        since = max(j, self.last_loop)
-        if self._guess_rivals(seg, sub, guess, corr, LP,
-                              float(self.travel[i] - self.travel[since])):
+        if self._guess_rivals(seg, sub, guess, corr, LP, self._untied(i, j)):
             self.loop_stats["guess_fits"] += 1
             return None
         return Hypothesis(corr.pose, best.score)
+
+    def _untied(self, i: int, j: int) -> float:
+        """The odometry travel (m) of node i since the chain was last tied to the map: since
+        the later of the earlier node j and the last closure (none when that is after i)."""
+        since = max(j, self.last_loop, 0)
+        return float(self.travel[i] - self.travel[min(since, i)])
 
     def _reach(self, i: int, j: int) -> float:
         """How far (m) a closure of node i with earlier node j may move it: ``max_jump`` plus
         ``drift_jump`` of the travel since the later of j and the last closure."""
         LP = self.params.loop
-        since = max(j, self.last_loop, 0)
-        return LP.max_jump + LP.drift_jump * float(self.travel[i] - self.travel[min(since, i)])
+        return LP.max_jump + LP.drift_jump * self._untied(i, j)
 
     def _last_old(self, i: int) -> int:
         """The newest node that node i may close a loop with (-1: none yet): at least
