@@ -41,18 +41,23 @@ def _log(path, jitters, relocalize: bool, held: bool = False) -> dict:
                      p: odometry_model(log_odometry(scans, p, 0)[0], ref)
                      for p in ("low", "high")}},
                  "builds": {}}
+    def jittered(j: int) -> np.ndarray:
+        return odo + np.random.default_rng(j).standard_normal(odo.shape) * 1e-9 if j else odo
+
+    def spread(builds: dict) -> dict:
+        ates = [b["ate_trans_m"] for b in builds.values()]
+        return {"mean": round(float(np.mean(ates)), 4), "min": min(ates), "max": max(ates)}
+
     first = None
     for j in jitters:
-        o = odo + np.random.default_rng(j).standard_normal(odo.shape) * 1e-9 if j else odo
-        res = build_map(scans, o)
+        res = build_map(scans, jittered(j))
         rep = res.report
         out["builds"][f"jitter{j}"] = {**{k: rep[k] for k in KEYS},
                                        "odometry_calibration": rep.get("odometry_calibration"),
                                        "online_ate_m": rep["online"]["ate_trans_m"]}
         if first is None:
             first = res
-    ates = [b["ate_trans_m"] for b in out["builds"].values()]
-    out["ate_m"] = {"mean": round(float(np.mean(ates)), 4), "min": min(ates), "max": max(ates)}
+    out["ate_m"] = spread(out["builds"])
     if relocalize:
         out["relocalize_jitter0"] = relocalize_trials(
             first.map, scans, 200, seed=0, alignment=first.report["alignment_to_reference"],
@@ -63,15 +68,12 @@ def _log(path, jitters, relocalize: bool, held: bool = False) -> dict:
         P = MapperParams(loop=replace(LoopParams(), confirm_jump=1.0))
         out["builds_confirm_jump_1m"] = {}
         for j in jitters:
-            o = odo + np.random.default_rng(j).standard_normal(odo.shape) * 1e-9 if j else odo
-            rep = build_map(scans, o, P).report
+            rep = build_map(scans, jittered(j), P).report
             out["builds_confirm_jump_1m"][f"jitter{j}"] = {
                 "ate_trans_m": rep["ate_trans_m"], "online_ate_m": rep["online"]["ate_trans_m"],
                 **{k: v for k, v in rep["closure_attempts"].items()
                    if k.startswith("held") or k == "witnessed"}}
-        ates = [b["ate_trans_m"] for b in out["builds_confirm_jump_1m"].values()]
-        out["ate_m_confirm_jump_1m"] = {"mean": round(float(np.mean(ates)), 4),
-                                        "min": min(ates), "max": max(ates)}
+        out["ate_m_confirm_jump_1m"] = spread(out["builds_confirm_jump_1m"])
     return out
 
 
