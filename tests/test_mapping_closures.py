@@ -1,6 +1,7 @@
 """Loop closing while mapping: an earlier visit's submap, the wider one tried when the
 few scans around that visit cannot place the scan (``LoopParams.wide_window``), and the
-veto on poses whose beams would pass through that visit's walls (``max_crossing``)."""
+veto on poses whose beams would pass through that visit's walls (``max_crossing``), and
+far jumps held until another scan agrees (``confirm_jump``)."""
 
 from __future__ import annotations
 
