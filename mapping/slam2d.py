@@ -23,6 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
 
 from .cga_segments import laser_motor, segments_to_global
 from .correction import Correction, CorrectionParams, correct_pose
@@ -122,19 +124,19 @@ class LoopParams:
     # (the drift a scan-matched trajectory may have gathered meanwhile)
     tie_jump: tuple[float, float] = (0.3, 0.03)
     # a closure that moves the pose farther than this (m) plus ``drift_jump`` of the travel
-    # since the chain was last tied is held, not taken, until another scan's closure agrees
-    # with it (to ``agree``: m, rad, after the chain's motion between the two): the newest
-    # earlier node's, relocalised in the same submap at once, or the next one within
+    # since the chain was last tied, and of the travel over the pose graph from the earlier
+    # visit (:meth:`Mapper._graph_travel`), is held, not taken, until another scan's closure
+    # agrees with it (to ``agree``: m, rad, after the chain's motion between the two): the
+    # newest earlier node's, relocalised in the same submap at once, or the next one within
     # ``hold_nodes`` nodes.  One that disagrees, or none, and it goes (0: never held, the
     # default).  A look-alike stretch of corridor in a small submap can fit a scan better
     # than the true place (Intel, high noise: five seeds of eight took one 2.3 m closure at
-    # scan 533), but a chain can also drift metres along a corridor in a few metres of
-    # travel, and then the true jump waits while the scans go on being mapped where the
-    # chain has them.  Measured at 1.0 (docs/mapping-2d.md, *A far jump held for a second
-    # scan*): the Intel robot's own wheels 0.0887 -> 0.0782 m mean, worst 0.143 -> 0.085 m;
-    # Intel high noise unchanged (0.0588 -> 0.0585 m); Killian Court 0.565 -> 0.542 m
-    # mean of four runs, but the simulated office's seed 4 (one lap) took a 2.6 m false
-    # closure that its held true one had kept out before
+    # scan 533, 8 m over the graph from its visit).  Measured at 1.0 (docs/mapping-2d.md,
+    # *A far jump held for a second scan*): the Intel robot's own wheels 0.0887 -> 0.0759 m
+    # mean, worst 0.143 -> 0.085 m; Intel high noise 0.0588 -> 0.0585 m; Killian Court
+    # 0.565 -> 0.533 m mean of four runs; but a sparse log's first loop (4-5 m of drift in
+    # 75 m) waits for a second scan, and a look-alike there may refute it: Intel thinned to
+    # every 2nd scan 0.0873 -> 0.0901 m, every 3rd 0.455 -> 0.636 m
     confirm_jump: float = 0.0
     hold_nodes: int = 12
     agree: tuple[float, float] = (0.3, np.deg2rad(3.0))
@@ -697,13 +699,14 @@ class Mapper:
         return added
 
     def _take_closure(self, j: int, i: int, z: np.ndarray, guess: np.ndarray) -> int:
-        """Add loop edge j -> i measuring ``z``, unless it jumps beyond ``confirm_jump``:
-        then it is held, and the newest earlier node's scan is relocalised in the same
-        submap as a witness.  Held closures are added when the witness or the first closure
-        of a later scan agrees with them and dropped when it does not (the later closure is
-        then taken on its own terms).  Another closure of the same scan that agrees joins
-        them: the scan, not its submap, is what may be a look-alike.  Returns the edges
-        added."""
+        """Add loop edge j -> i measuring ``z``, unless it jumps beyond ``confirm_jump`` and
+        the drift allowance (of both the travel since the chain was last tied and the
+        travel over the graph from j): then it is held, and the newest earlier node's scan
+        is relocalised in the same submap as a witness.  Held closures are added when the
+        witness or the first closure of a later scan agrees with them and dropped when it
+        does not (the later closure is then taken on its own terms).  Another closure of
+        the same scan that agrees joins them: the scan, not its submap, is what may be a
+        look-alike.  Returns the edges added."""
         LP = self.params.loop
         held = self._held
         X = self.graph.poses
@@ -718,7 +721,8 @@ class Mapper:
             else:
                 return self._confirm(j, i, z, guess)
         jump = float(np.hypot(*relative(guess, z)[:2]))
-        if LP.confirm_jump > 0 and jump > LP.confirm_jump + LP.drift_jump * self._untied(i, j):
+        if (LP.confirm_jump > 0 and jump > LP.confirm_jump + LP.drift_jump * self._untied(i, j)
+                and jump > LP.confirm_jump + LP.drift_jump * self._graph_travel(i, j)):
             self.loop_stats["held"] += 1
             self._held = [(j, i, z, guess)]
             witness = self._earlier_witness(j, i)
@@ -838,6 +842,28 @@ class Mapper:
             self.loop_stats["guess_fits"] += 1
             return None
         return Hypothesis(corr.pose, best.score)
+
+    def _graph_travel(self, i: int, j: int) -> float:
+        """The least odometry travel (m) over a path between nodes i and j in the pose graph,
+        its loop and neighbour edges counted as none: how far the pose graph lets node i
+        drift from node j.  A chain tied by its last closure to a place the graph does not
+        tie to j's has drifted from j over the whole way round."""
+        E = self.graph
+        ei, ej = E.ei.array(), E.ej.array()
+        tv = self.travel.array()
+        step = ~E.loop.array() & (np.abs(ej - ei) == 1)
+        # zero-weight edges are dropped from a sparse graph: a nanometre stands for none
+        w = np.where(step, np.abs(tv[ej] - tv[ei]), 0.0) + 1e-9
+        n = self.count
+        # one entry per pair, the least (a sparse matrix would add up repeated edges)
+        key = np.minimum(ei, ej) * n + np.maximum(ei, ej)
+        order = np.lexsort((w, key))
+        ks = key[order]
+        first = np.ones(len(ks), bool)
+        first[1:] = ks[1:] != ks[:-1]
+        pick = order[first]
+        G = sp.csr_matrix((w[pick], (ei[pick], ej[pick])), shape=(n, n))
+        return float(dijkstra(G, directed=False, indices=i)[j])
 
     def _untied(self, i: int, j: int) -> float:
         """The odometry travel (m) of node i since the chain was last tied to the map: since
